@@ -98,3 +98,12 @@ def check_camera_above(center, interface: Interface, name: str = "camera") -> No
             f"{name} centre is {-height:.4g} m below the water plane (level {float(interface.level):.4g} m): "
             "cameras must be in air, above the water level"
         )
+
+
+def check_water_denser(interface: Interface) -> None:
+    """Raise `JaxStereoError` when a concrete interface has `n_water <= n_air` (forward projection needs it)."""
+    if is_concrete(interface) and float(interface.n_water) <= float(interface.n_air):
+        raise JaxStereoError(
+            f"interface n_water ({float(interface.n_water):g}) must exceed n_air ({float(interface.n_air):g}) "
+            "for forward projection through the surface"
+        )

@@ -47,7 +47,7 @@ def so3_log(R: Float[Array, "3 3"]) -> Float[Array, "3"]:
     near_pi = theta > jnp.pi - 1e-4
     B = (R + R.T) / 2.0 - cos * jnp.eye(3, dtype=R.dtype)
     col = jnp.argmax(jnp.diag(B))
-    axis = B[:, col] / jnp.sqrt(jnp.maximum(B[col, col], 1e-300))
+    axis = B[:, col] / jnp.maximum(jnp.linalg.norm(B[:, col]), 1e-300)
     axis = axis * jnp.where(jnp.dot(axis, w) < 0, -1.0, 1.0)
     return jnp.where(near_pi, axis * theta, factor * w)
 

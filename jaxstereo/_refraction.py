@@ -2,7 +2,7 @@
 
 Back-projection (pixel -> refracted ray in water) is closed form. Forward projection (point under
 water -> pixel) solves Snell's law for the refraction point in the plane of incidence with a
-bracketed Newton iteration of fixed length, then one more Newton step that carries the gradients
+Newton iteration of fixed length (monotone, see `_solve_refraction_tangent`), then one more step that carries the gradients
 (the implicit-function theorem), so derivatives are exact and cheap.
 """
 
@@ -14,9 +14,9 @@ from jaxtyping import Array, Bool, Float
 
 from ._camera import Camera
 from ._errors import check_shape
-from ._interface import Interface, check_camera_above
+from ._interface import Interface, check_camera_above, check_water_denser
 
-NEWTON_ITERATIONS = 8
+NEWTON_ITERATIONS = 4
 _TINY = 1e-300
 
 
@@ -91,34 +91,35 @@ def backproject_refracted(
     return hit, refracted, valid
 
 
-def _snell_residual(s, r, dc, dp, n_a, n_w):
-    """Snell residual in the plane of incidence and its derivative in `s` (monotone increasing)."""
-    qa = jnp.sqrt(s * s + dc * dc)
-    qw = jnp.sqrt((r - s) ** 2 + dp * dp)
-    f = n_a * s / qa - n_w * (r - s) / qw
-    df = n_a * dc * dc / qa**3 + n_w * dp * dp / qw**3
-    return f, df
+def _snell_residual(t, r, dc, dp, k):
+    """Snell's law in the plane of incidence, in `t = tan(theta_air)`, and its derivative.
+
+    A ray leaving the camera (height `dc` above the plane) at `t` crosses the plane at horizontal
+    distance `dc t` and reaches depth `dp` a further `dp tan(theta_water)` away, with
+    `sin(theta_water) = k sin(theta_air)`, `k = n_air / n_water`. The residual
+    `g(t) = dc t + dp k t / sqrt(1 + (1 - k^2) t^2) - r` is increasing and concave for `k < 1`.
+    """
+    q = jax.lax.rsqrt(1.0 + (1.0 - k * k) * t * t)
+    g = dc * t + dp * k * t * q - r
+    dg = dc + dp * k * q * q * q
+    return g, dg
 
 
-def _solve_refraction_offset(r, dc, dp, n_a, n_w, iterations):
-    """Bracketed Newton on `s` in [0, r], started from the paraxial solution; no gradients."""
-    r, dc, dp, n_a, n_w = (jax.lax.stop_gradient(v) for v in (r, dc, dp, n_a, n_w))
-    s0 = r * n_w * dc / (n_a * dp + n_w * dc)
-    lo = jnp.zeros_like(r)
-    hi = r
+def _solve_refraction_tangent(r, dc, dp, k, iterations):
+    """Newton on `g(t) = 0` from the paraxial solution `t0 = r / (dc + k dp)`, without gradients.
 
-    def body(_, state):
-        s, lo, hi = state
-        f, df = _snell_residual(s, r, dc, dp, n_a, n_w)
-        lo = jnp.where(f < 0, s, lo)
-        hi = jnp.where(f > 0, s, hi)
-        step = s - f / jnp.where(df > 0, df, 1.0)
-        inside = (step >= lo) & (step <= hi)
-        s = jnp.where(inside, step, 0.5 * (lo + hi))
-        return s, lo, hi
+    `g(t0) <= 0` always (the paraxial ray falls short), and Newton on an increasing concave function
+    started left of its root climbs to it monotonically, never overshooting: no safeguard is needed.
+    Three steps reach 1e-11 m up to 45 degrees of incidence, four reach round-off up to 89 degrees.
+    """
+    r, dc, dp, k = (jax.lax.stop_gradient(v) for v in (r, dc, dp, k))
+    t = r / (dc + k * dp)
 
-    s, _, _ = jax.lax.fori_loop(0, iterations, body, (s0, lo, hi), unroll=True)
-    return s
+    def body(_, t):
+        g, dg = _snell_residual(t, r, dc, dp, k)
+        return t - g / dg
+
+    return jax.lax.fori_loop(0, iterations, body, t, unroll=True)
 
 
 def refraction_points(
@@ -129,15 +130,16 @@ def refraction_points(
 ) -> Float[Array, "*batch 3"]:
     """Where the light path from an underwater point to a camera centre crosses the interface.
 
-    Solves Snell's law `n_air sin(theta_air) = n_water sin(theta_water)` in the plane of incidence.
-    Differentiable in all inputs (the gradient follows the implicit-function theorem).
+    Solves Snell's law `n_air sin(theta_air) = n_water sin(theta_water)` in the plane of incidence
+    (requires `n_water > n_air`: light from under water always reaches the air). Differentiable in all inputs (the gradient follows the implicit-function theorem).
 
     **Arguments:**
 
     - `centers`: camera centres (..., 3) (or (3,)), world metres, above the plane.
     - `points_world`: points (..., 3) under the plane, world metres.
     - `interface`: the flat interface.
-    - `iterations`: Newton steps (8 reach float64 round-off up to grazing incidence).
+    - `iterations`: Newton steps before the final differentiable one (4 reach float64 round-off up to
+      89 degrees of incidence).
 
     **Returns:** the refraction points (..., 3) on the plane, world metres. For points above the plane
     the result is meaningless; callers select them out (see `project_refracted`).
@@ -156,11 +158,12 @@ def refraction_points(
     # for them (callers mask them out) so that no NaN leaks into values or gradients.
     dc = jnp.where(dc > 0, dc, 1.0)
     dp = jnp.where(dp > 0, dp, 1.0)
-    s = _solve_refraction_offset(r, dc, dp, interface.n_air, interface.n_water, iterations)
+    k = interface.n_air / interface.n_water
+    t = _solve_refraction_tangent(r, dc, dp, k, iterations)
     # One differentiable Newton step from the converged value: exact value, exact first derivatives.
-    f, df = _snell_residual(s, r, dc, dp, interface.n_air, interface.n_water)
-    s = s - f / df
-    return foot_c + s[..., None] * u
+    g, dg = _snell_residual(t, r, dc, dp, k)
+    t = t - g / dg
+    return foot_c + (dc * t)[..., None] * u
 
 
 def project_refracted(
@@ -183,6 +186,7 @@ def project_refracted(
     """
     check_shape("points_world", points_world, (3,))
     check_camera_above(camera.center, interface)
+    check_water_denser(interface)
     return _project_refracted(camera, interface, points_world, iterations)
 
 
