@@ -41,6 +41,82 @@ def _cmd_incidence_report(args) -> int:
     return 0
 
 
+def _cmd_calibrate(args) -> int:
+    from ._boards import BoardSpec
+    from ._calibration import calibrate_stereo, detect_all, world_frame_rig
+    from ._detect import detect_board
+    from ._images import expand_images, read_image, read_images_same_size
+    from ._plots import plot_calibration_errors
+    from ._rig import save_rig
+
+    import numpy as np
+
+    board = BoardSpec.parse(args.board)
+    left_paths = expand_images(args.left, "left images")
+    right_paths = expand_images(args.right, "right images")
+    if len(left_paths) != len(right_paths):
+        raise JaxStereoError(
+            f"{len(left_paths)} left images match {args.left!r} but {len(right_paths)} right images match "
+            f"{args.right!r}: the pairs must match one to one (sorted by name)"
+        )
+    left_images, size = read_images_same_size(left_paths)
+    right_images, size_r = read_images_same_size(right_paths)
+    if size_r != size:
+        raise JaxStereoError(f"left images are {size[0]}x{size[1]} but right images are {size_r[0]}x{size_r[1]}")
+    print(f"calibrate: {len(left_paths)} pairs of {size[0]}x{size[1]} images, board {board}")
+    left_det = detect_all(left_images, board)
+    right_det = detect_all(right_images, board)
+    stereo = calibrate_stereo(left_det, right_det, board, size, drop_outliers=not args.keep_outliers)
+    origin = []
+    for path in (args.origin_left, args.origin_right):
+        image = read_image(path, grayscale=True)
+        if (image.shape[1], image.shape[0]) != size:
+            raise JaxStereoError(f"origin image {path!r} is {image.shape[1]}x{image.shape[0]}, not {size[0]}x{size[1]}")
+        det = detect_board(image, board)
+        if det is None:
+            raise JaxStereoError(f"no board {board} found in origin image {path!r}")
+        origin.append(det)
+    rig, report = world_frame_rig(stereo, board, origin[0], origin[1], refine=not args.no_refine)
+    names = [p.name for p in left_paths]
+    calibration = {
+        "board": str(board),
+        "pairs": len(left_paths),
+        "left_views_used": [names[i] for i in stereo.left.views],
+        "right_views_used": [right_paths[i].name for i in stereo.right.views],
+        "dropped_left": [names[i] for i in stereo.left.dropped],
+        "dropped_right": [right_paths[i].name for i in stereo.right.dropped],
+        "pairs_missing_board": [names[i] for i in stereo.missing],
+        "rms_left_px": stereo.left.rms_px,
+        "rms_right_px": stereo.right.rms_px,
+        "rms_stereo_px": stereo.rms_px,
+        "baseline_m": stereo.baseline_m,
+        "world_frame": report,
+    }
+    rig = rig.__class__(rig.left, rig.right, None, calibration)
+    heights = [float(np.asarray(c.center)[2]) for c in (rig.left, rig.right)]
+    rows = [
+        ("views used (left / right / pairs)", f"{len(stereo.left.views)} / {len(stereo.right.views)} / {len(stereo.pairs)}"),
+        ("RMS left / right / stereo (px)", f"{stereo.left.rms_px:.3f} / {stereo.right.rms_px:.3f} / {stereo.rms_px:.3f}"),
+        ("baseline (m)", f"{stereo.baseline_m:.5f}"),
+        ("camera heights above z = 0 (m)", f"{heights[0]:.4f} / {heights[1]:.4f}"),
+    ]
+    if "origin_rms_px_after" in report:
+        rows.append(("origin board RMS before / after refine (px)",
+                     f"{report['origin_rms_px_before']:.3f} / {report['origin_rms_px_after']:.3f}"))
+    width = max(len(r[0]) for r in rows)
+    for name, value in rows:
+        print(f"  {name:<{width}}  {value}")
+    for label, items in (("dropped (left)", calibration["dropped_left"]), ("dropped (right)", calibration["dropped_right"]),
+                         ("board missing in a pair", calibration["pairs_missing_board"])):
+        if items:
+            print(f"  {label}: {', '.join(items)}")
+    figure = Path(args.figure) if args.figure else Path(args.output).with_name(Path(args.output).stem + "_errors.png")
+    plot_calibration_errors(stereo, figure, names)
+    save_rig(rig, args.output)
+    print(f"rig: {args.output}\nfigure: {figure}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jaxstereo",
@@ -64,6 +140,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default="incidence-report.png", help="PNG figure to write")
     p.add_argument("--markdown", help="also write the table to this Markdown file")
     p.set_defaults(func=_cmd_incidence_report)
+
+    p = sub.add_parser(
+        "calibrate",
+        help="calibrate a stereo rig from board photographs; world frame Z up from a board on the floor",
+        description="Intrinsics of both cameras, their relative pose, and the world frame (z = 0 on the origin "
+        "board, Z up) from board photographs; writes the rig JSON and a PNG of per-view errors.",
+    )
+    p.add_argument("--left", required=True, help="left images (glob pattern, quoted)")
+    p.add_argument("--right", required=True, help="right images (glob pattern, quoted), same order")
+    p.add_argument("--board", required=True,
+                   help="chessboard:COLSxROWS:SQUARE (inner corners) or charuco:COLSxROWS:SQUARE:MARKER:DICT")
+    p.add_argument("--origin-left", required=True, help="left image of the board lying on z = 0")
+    p.add_argument("--origin-right", required=True, help="right image of the board lying on z = 0")
+    p.add_argument("-o", "--output", required=True, help="rig JSON to write")
+    p.add_argument("--figure", help="PNG of per-view errors (default: next to the rig, *_errors.png)")
+    p.add_argument("--keep-outliers", action="store_true", help="do not drop views with outlying errors")
+    p.add_argument("--no-refine", action="store_true", help="skip the optimistix refinement of the world frame")
+    p.set_defaults(func=_cmd_calibrate)
     return parser
 
 
@@ -74,8 +168,11 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    import jax
+
     try:
-        return args.func(args)
+        with jax.enable_x64(True):  # geometry in float64, for this command only
+            return args.func(args)
     except (JaxStereoError, OSError) as err:
         print(f"jaxstereo {args.command}: error: {err}", file=sys.stderr)
         return 2
