@@ -1,0 +1,122 @@
+"""Surveys: reconstructed point clouds, their `.npz` file, `.ply` export and preview figure."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import JaxStereoError
+from ._io import atomic_path
+
+
+@dataclasses.dataclass(frozen=True)
+class Survey:
+    """A reconstructed point cloud in the world frame.
+
+    **Fields:** `points` (N, 3) world metres; `colors` (N, 3) uint8 RGB; `pixels` (N, 2) left-image
+    pixels; `submerged` (N,) bool; `rig_json` the rig used (JSON text); `model` "exact",
+    "first-order" or "none"; `water_level` metres (NaN for a dry survey).
+    """
+
+    points: np.ndarray
+    colors: np.ndarray
+    pixels: np.ndarray
+    submerged: np.ndarray
+    rig_json: str
+    model: str
+    water_level: float
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+def save_survey(survey: Survey, path) -> None:
+    """Write the survey `.npz` atomically."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise JaxStereoError(f"survey file {str(path)!r} must end in .npz")
+    with atomic_path(path) as tmp:
+        np.savez(tmp, points=survey.points.astype(np.float64), colors=survey.colors.astype(np.uint8),
+                 pixels=survey.pixels.astype(np.float32), submerged=survey.submerged.astype(bool),
+                 rig=np.array(survey.rig_json), model=np.array(survey.model),
+                 water_level=np.array(survey.water_level, dtype=np.float64))
+
+
+def load_survey(path) -> Survey:
+    """Read a survey `.npz`; `JaxStereoError` names the file and what is wrong with it."""
+    path = Path(path)
+    if not path.is_file():
+        raise JaxStereoError(f"survey {str(path)!r} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            fields = {k: data[k] for k in data.files}
+    except Exception as err:  # numpy raises several types for corrupt archives
+        raise JaxStereoError(f"survey {str(path)!r} cannot be read ({err.__class__.__name__})") from None
+    for key in ("points", "colors", "pixels", "submerged"):
+        if key not in fields:
+            raise JaxStereoError(f"survey {str(path)!r} has no {key!r} array")
+    points = np.asarray(fields["points"], dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise JaxStereoError(f"survey {str(path)!r}: points must have shape (N, 3), got {points.shape}")
+    return Survey(points, np.asarray(fields["colors"]), np.asarray(fields["pixels"]),
+                  np.asarray(fields["submerged"], dtype=bool), str(fields.get("rig", "")),
+                  str(fields.get("model", "")), float(fields.get("water_level", np.nan)))
+
+
+def save_ply(survey: Survey, path) -> None:
+    """Write the points and colours as a binary little-endian PLY, atomically."""
+    n = len(survey)
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment jaxstereo survey, model {survey.model}, world metres\n"
+              f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
+    record = np.zeros(n, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    record["x"], record["y"], record["z"] = survey.points.T
+    record["r"], record["g"], record["b"] = survey.colors.T
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(header)
+            fh.write(record.tobytes())
+
+
+def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title: str = "") -> None:
+    """Two panels: height in the left image's pixels, and a top view (x, y) coloured by height."""
+    from ._plots import _pyplot, save_figure
+
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
+    w, h = image_size
+    z = survey.points[:, 2]
+    if len(survey):
+        vmin, vmax = np.percentile(z, [1, 99])
+    else:
+        vmin, vmax = 0.0, 1.0
+    grid = np.full((h, w), np.nan)
+    px = np.round(survey.pixels).astype(int)
+    ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    grid[px[ok, 1], px[ok, 0]] = z[ok]
+    im = axes[0].imshow(grid, cmap="viridis", vmin=vmin, vmax=vmax)
+    axes[0].set_title("height (m) in the left image")
+    axes[0].set_xlabel("u (px)")
+    axes[0].set_ylabel("v (px)")
+    step = max(1, len(survey) // 200_000)
+    axes[1].scatter(survey.points[::step, 0], survey.points[::step, 1], c=z[::step], s=0.3, cmap="viridis",
+                    vmin=vmin, vmax=vmax, rasterized=True)
+    if np.isfinite(survey.water_level):
+        sub = survey.submerged[::step]
+        if sub.any():
+            axes[1].scatter([], [], c="tab:blue", s=5, label=f"{100 * survey.submerged.mean():.0f}% submerged")
+            axes[1].legend(loc="upper right", fontsize=8)
+    axes[1].set_aspect("equal")
+    axes[1].set_xlabel("x (m)")
+    axes[1].set_ylabel("y (m)")
+    axes[1].set_title("top view")
+    fig.colorbar(im, ax=axes, label="z (m)", shrink=0.85)
+    fig.suptitle(title or f"survey: {len(survey)} points, model {survey.model}")
+    save_figure(fig, path)
+
+
+def survey_summary_json(summary: dict) -> str:
+    return json.dumps(summary, indent=2, default=float)
