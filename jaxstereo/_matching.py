@@ -70,7 +70,7 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, min_disparity: int, num_
 
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, window: int = 7,
-                     iterations: int = 3, vertical: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     iterations: int = 3) -> np.ndarray:
     """Sub-pixel refinement of a disparity map by dense Lucas-Kanade steps on the rectified pair.
 
     SGBM's parabola fit locks disparities towards integers (a bias that does not average out on
@@ -78,51 +78,34 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     the current disparity and solves, over a `window` x `window` box around every pixel, the
     least-squares shift that best aligns it with the left image. Steps are limited to half a pixel.
 
-    With `vertical` (an (h, w) array of vertical offsets, pixels, initially zeros) the shift is 2-D:
-    the right match may sit off the row by a residual vertical parallax, which is estimated too.
+    **Arguments:** rectified `left`, `right` images; `disparity` (h, w) pixels, NaN for no match
+    (`x_right = x_left - d`).
 
-    **Returns:** `(disparity, vertical)` refined (NaN where the input was NaN or the texture too weak).
+    **Returns:** the refined disparity (h, w), NaN where the input was NaN or the texture too weak.
     """
     L = _grey_float(left)
     Rimg = _grey_float(right)
     h, w = L.shape
     u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     d = np.nan_to_num(disparity, nan=0.0).astype(np.float32)
-    dv = np.zeros_like(d) if vertical is None else vertical.astype(np.float32).copy()
+    map_y = v
     valid = np.isfinite(disparity)
     gx_full = cv2.Sobel(Rimg, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-    gy_full = cv2.Sobel(Rimg, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
     box = (window, window)
     for _ in range(iterations):
         map_x = u - d
-        map_y = v + dv
         warped = cv2.remap(Rimg, map_x, map_y, cv2.INTER_LINEAR)
         gx = cv2.remap(gx_full, map_x, map_y, cv2.INTER_LINEAR)
         r = L - warped
         sxx = cv2.boxFilter(gx * gx, -1, box, normalize=False)
         sxr = cv2.boxFilter(gx * r, -1, box, normalize=False)
-        if vertical is None:
-            # I_R(u - d - delta) ~ warped - delta * gx  =>  delta = -sum(r gx) / sum(gx^2)
-            ok = sxx > 1e-4 * window * window
-            step = np.where(ok, -sxr / np.where(ok, sxx, 1.0), 0.0)
-            d += np.clip(step, -0.5, 0.5)
-            valid &= ok
-        else:
-            gy = cv2.remap(gy_full, map_x, map_y, cv2.INTER_LINEAR)
-            sxy = cv2.boxFilter(gx * gy, -1, box, normalize=False)
-            syy = cv2.boxFilter(gy * gy, -1, box, normalize=False)
-            syr = cv2.boxFilter(gy * r, -1, box, normalize=False)
-            det = sxx * syy - sxy * sxy
-            ok = det > 1e-8 * window**4
-            safe = np.where(ok, det, 1.0)
-            # Unknowns: -delta_d (x shift of the sample) and delta_v; r ~ -gx (-dd) ... solve J^T J s = -J^T r.
-            sx = -(syy * sxr - sxy * syr) / safe
-            sy = -(-sxy * sxr + sxx * syr) / safe
-            d += np.clip(np.where(ok, -sx, 0.0), -0.5, 0.5)
-            dv += np.clip(np.where(ok, sy, 0.0), -0.5, 0.5)
-            valid &= ok
+        # I_R(u - d - delta) ~ warped - delta * gx  =>  delta = -sum(r gx) / sum(gx^2)
+        ok = sxx > 1e-4 * window * window
+        step = np.where(ok, -sxr / np.where(ok, sxx, 1.0), 0.0)
+        d += np.clip(step, -0.5, 0.5)
+        valid &= ok
     d[~valid] = np.nan
-    return d, dv
+    return d
 
 
 def _grey_float(image: np.ndarray) -> np.ndarray:

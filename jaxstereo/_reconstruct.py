@@ -112,8 +112,8 @@ def _match(rect, rig, left_image, right_image, z_lo, z_hi, options):
     lo, num = disparity_search_range(d_min, d_max, options.match.margin_px)
     disparity = sgbm_disparity(_grey(rect_l), _grey(rect_r), lo, num, options.match)
     if options.subpixel_iterations:
-        disparity, _ = refine_disparity(rect_l, rect_r, disparity, options.subpixel_window, options.subpixel_iterations)
-    return maps, rect_l, disparity, (lo, num)
+        disparity = refine_disparity(rect_l, rect_r, disparity, options.subpixel_window, options.subpixel_iterations)
+    return maps, rect_l, rect_r, disparity, (lo, num)
 
 
 def _pairs_from_disparity(disparity):
@@ -202,7 +202,7 @@ def reconstruct(
     _check_inputs(left_image, right_image, rig, interface, z_range)
 
     rect_air = rectify(rig.left, rig.right, interface, "air")
-    maps_air, rect_left_air, disp_air, range_air = _match(rect_air, rig, left_image, right_image, *z_range, options)
+    maps_air, rect_left_air, _, disp_air, range_air = _match(rect_air, rig, left_image, right_image, *z_range, options)
     timings["rectify+match air (s)"] = time.perf_counter() - t0
     t1 = time.perf_counter()
 
@@ -214,8 +214,8 @@ def reconstruct(
         diff = max(float(np.nanmax(np.abs(mw - ma))) for pair_w, pair_a in zip(maps_water, maps_air)
                    for mw, ma in zip(pair_w, pair_a))
         if diff > options.same_rectification_px:
-            _, rect_left_w, disp_w, _ = _match(rect_water, rig, left_image, right_image, z_range[0],
-                                               min(z_range[1], level), options)
+            _, rect_left_w, _, disp_w, _ = _match(rect_water, rig, left_image, right_image, z_range[0],
+                                                             min(z_range[1], level), options)
             sets.append(("water", rect_water, maps_water, rect_left_w, disp_w))
         else:
             sets = [("both", rect_water, maps_water, rect_left_air, disp_air)]

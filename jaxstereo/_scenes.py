@@ -151,8 +151,8 @@ def _texture_noise(rng, shape, scales_m, spacing):
     return 1.0 / (1.0 + np.exp(-1.6 * total))
 
 
-def _speckle_albedo(rng, shape, spacing, base, contrast=0.8):
-    noise = _texture_noise(rng, shape, (0.012, 0.004, 0.0015), spacing)
+def _speckle_albedo(rng, shape, spacing, base, contrast=0.8, scales=(0.012, 0.004, 0.0015)):
+    noise = _texture_noise(rng, shape, scales, spacing)
     tint = np.asarray(base)[None, None, :]
     return np.clip(tint * ((1 - contrast) + contrast * 1.6 * noise[..., None]), 0.0, 1.0)
 
@@ -168,7 +168,8 @@ def build_scene(spec: SceneSpec) -> Scene:
         return Scene(spec, Heightfield(z, albedo, x[0], y[0], spec.extent.spacing))
     if isinstance(spec, SlopingBoard):
         z = np.broadcast_to(spec.height(x)[None, :], shape).copy()
-        albedo = _speckle_albedo(rng, shape, spec.extent.spacing, (0.8, 0.72, 0.55))
+        # A painted random speckle, as used on lab test boards: fine and contrasted.
+        albedo = _speckle_albedo(rng, shape, spec.extent.spacing, (0.8, 0.72, 0.55), scales=(0.0015, 0.004))
         return Scene(spec, Heightfield(z, albedo, x[0], y[0], spec.extent.spacing))
     if isinstance(spec, Breakwater):
         return _build_breakwater(spec, x, y, rng)
