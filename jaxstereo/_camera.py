@@ -38,6 +38,24 @@ def distort_normalized(xy: Float[Array, "*batch 2"], dist: Float[Array, "8"]) ->
     return jnp.stack([xd, yd], axis=-1)
 
 
+def _distortion_and_jacobian(x, y, dist):
+    """Distorted coordinates and the 2x2 Jacobian of OpenCV's distortion at (x, y) (closed form)."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = (dist[i] for i in range(N_DIST))
+    r2 = x * x + y * y
+    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+    radial = num / den
+    dradial = (dnum * den - num * dden) / (den * den)  # d radial / d r2
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    cross = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+    a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+    d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+    return xd, yd, a, cross, cross, d
+
+
 def undistort_normalized(
     xy_distorted: Float[Array, "*batch 2"], dist: Float[Array, "8"], iterations: int = UNDISTORT_ITERATIONS
 ) -> Float[Array, "*batch 2"]:
@@ -51,25 +69,17 @@ def undistort_normalized(
 
     **Returns:** undistorted normalised coordinates, shape (..., 2).
     """
-    shape = xy_distorted.shape
-    target = xy_distorted.reshape(-1, 2)
+    tx, ty = xy_distorted[..., 0], xy_distorted[..., 1]
 
-    def residual(p, q):
-        return distort_normalized(p, dist) - q
-
-    jac = jax.vmap(jax.jacfwd(residual), in_axes=(0, 0))
-
-    def step(p, _):
-        r = jax.vmap(residual)(p, target)
-        J = jac(p, target)
-        a, b, c, d = J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1]
+    def step(_, p):
+        x, y = p
+        xd, yd, a, b, c, d = _distortion_and_jacobian(x, y, dist)
+        rx, ry = xd - tx, yd - ty
         det = a * d - b * c
-        dx = (d * r[:, 0] - b * r[:, 1]) / det
-        dy = (-c * r[:, 0] + a * r[:, 1]) / det
-        return p - jnp.stack([dx, dy], axis=-1), None
+        return x - (d * rx - b * ry) / det, y - (-c * rx + a * ry) / det
 
-    p, _ = jax.lax.scan(step, target, None, length=iterations)
-    return p.reshape(shape)
+    x, y = jax.lax.fori_loop(0, iterations, step, (tx, ty))
+    return jnp.stack([x, y], axis=-1)
 
 
 class Camera(eqx.Module):

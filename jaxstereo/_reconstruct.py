@@ -24,12 +24,12 @@ import numpy as np
 
 from ._camera import Camera
 from ._errors import JaxStereoError
-from ._first_order import backproject_first_order
+from ._first_order import virtual_camera
 from ._interface import Interface, check_camera_above
 from ._matching import MatchOptions, disparity_search_range, refine_disparity, sgbm_disparity
 from ._precision import float64
-from ._rectify import Rectification, real_to_rectified, rectification_maps, rectified_to_real, rectify, remap
-from ._refraction import backproject_refracted, project_refracted
+from ._rectify import Rectification, real_to_rectified, rectification_maps, rectified_to_real_jit, rectify, remap
+from ._refraction import intersect_plane, project_refracted, refract_directions
 from ._rig import Rig, rig_to_dict
 from ._survey import Survey
 from ._triangulate import triangulate_rays
@@ -38,6 +38,7 @@ log = logging.getLogger("jaxstereo")
 
 MODELS = ("exact", "first-order", "none")
 CHUNK = 1 << 18
+PARALLAX_SAMPLES = 20000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,14 +86,16 @@ def _disparity_range(rect: Rectification, z_lo: float, z_hi: float) -> tuple[flo
     w, h = rect.size
     u, v = np.meshgrid(np.linspace(0, w - 1, 24), np.linspace(0, h - 1, 16))
     hom = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=-1)
-    d = (hom @ np.linalg.inv(rect.K).T) @ rect.R
-    c0, c1 = rect.centers
+    K = np.asarray(rect.K)
+    R = np.asarray(rect.R)
+    d = (hom @ np.linalg.inv(K).T) @ R
+    c0, c1 = np.asarray(rect.centers)
     disparities = []
     for z in (z_lo, z_hi):
         s = (z - c0[2]) / np.where(d[:, 2] == 0, np.nan, d[:, 2])
         X = c0 + s[:, None] * d
         ok = s > 0
-        p = (X - c1) @ rect.R.T @ rect.K.T
+        p = (X - c1) @ R.T @ K.T
         disparities.append((u.ravel() - p[:, 0] / p[:, 2])[ok])
     all_d = np.concatenate(disparities)
     if all_d.size == 0:
@@ -124,35 +127,48 @@ def _pairs_from_disparity(disparity):
     return left, right, v, u
 
 
-@jax.jit
-def _triangulate_chunk(left_cam: Camera, right_cam: Camera, interface: Interface, px_l, px_r, virtual_l, virtual_r):
-    """Air, exact and first-order triangulation of real-pixel pairs; returns all three and their ray gaps."""
+def _triangulate_chunk(left_cam: Camera, right_cam: Camera, interface: Interface, px_l, px_r, model: str):
+    """In-air triangulation of real-pixel pairs, and the under-water one of `model`.
+
+    **Returns:** `(p_air, gap_air, p_water, gap_water, ok_water)`; for model "none" the water part
+    repeats the air part.
+    """
     o1, d1 = left_cam.backproject(px_l)
     o2, d2 = right_cam.backproject(px_r)
     p_air, gap_air = triangulate_rays(o1, d1, o2, d2)
-    a1, b1, ok1 = backproject_refracted(left_cam, interface, px_l)
-    a2, b2, ok2 = backproject_refracted(right_cam, interface, px_r)
-    p_exact, gap_exact = triangulate_rays(a1, b1, a2, b2)
-    f1, g1, _ = backproject_first_order(left_cam, interface, virtual_l)
-    f2, g2, _ = backproject_first_order(right_cam, interface, virtual_r)
-    p_fo, gap_fo = triangulate_rays(f1, g1, f2, g2)
-    return p_air, gap_air, p_exact, gap_exact, ok1 & ok2, p_fo, gap_fo
+    if model == "none":
+        return p_air, gap_air, p_air, gap_air, jnp.ones_like(gap_air, dtype=bool)
+    water_rays = []
+    for cam, o, d in ((left_cam, o1, d1), (right_cam, o2, d2)):
+        hit, s = intersect_plane(o, d, interface.normal, interface.level)
+        if model == "exact":
+            direction, ok = refract_directions(d, interface.normal, interface.n_air, interface.n_water)
+        else:  # first order: the ray from the virtual centre through the crossing point
+            direction = hit - virtual_camera(cam, interface).center
+            direction = direction / jnp.linalg.norm(direction, axis=-1, keepdims=True)
+            ok = jnp.ones_like(s, dtype=bool)
+        water_rays.append((hit, direction, ok & (s > 0) & jnp.isfinite(s)))
+    (a1, b1, ok1), (a2, b2, ok2) = water_rays
+    p_water, gap_water = triangulate_rays(a1, b1, a2, b2)
+    return p_air, gap_air, p_water, gap_water, ok1 & ok2
+
+
+_triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=5)
 
 
 def _to_real(rect, rig, px_rect, side):
     cam = rig.left if side == 0 else rig.right
-    fn = jax.jit(lambda c, p: rectified_to_real(rect, c, side, p))
     out = []
     for start in range(0, px_rect.shape[0], CHUNK):
         chunk = px_rect[start : start + CHUNK]
         pad = CHUNK - chunk.shape[0]
-        res, _ = fn(cam, jnp.asarray(np.pad(chunk, ((0, pad), (0, 0)))))
+        res, _ = rectified_to_real_jit(rect, cam, side, jnp.asarray(np.pad(chunk, ((0, pad), (0, 0)))))
         out.append(np.asarray(res)[: chunk.shape[0]])
     return np.concatenate(out) if out else np.zeros((0, 2))
 
 
-def _triangulate(rig, interface, px_l, px_r):
-    """Triangulate real-pixel pairs in chunks of fixed size (one compilation)."""
+def _triangulate(rig, interface, px_l, px_r, model):
+    """Triangulate real-pixel pairs in chunks of fixed size (one compilation per model)."""
     n = px_l.shape[0]
     outs = []
     for start in range(0, n, CHUNK):
@@ -161,11 +177,11 @@ def _triangulate(rig, interface, px_l, px_r):
         pad = CHUNK - a.shape[0]
         a = jnp.asarray(np.pad(a, ((0, pad), (0, 0)), constant_values=1.0))
         b = jnp.asarray(np.pad(b, ((0, pad), (0, 0)), constant_values=1.0))
-        res = _triangulate_chunk(rig.left, rig.right, interface, a, b, a, b)
+        res = _triangulate_chunk_jit(rig.left, rig.right, interface, a, b, model)
         outs.append([np.asarray(r)[: n - start if pad else CHUNK] for r in res])
     if not outs:
         empty = np.zeros((0, 3))
-        return empty, np.zeros(0), empty, np.zeros(0), np.zeros(0, bool), empty, np.zeros(0)
+        return empty, np.zeros(0), empty, np.zeros(0), np.zeros(0, bool)
     return [np.concatenate([o[i] for o in outs]) for i in range(len(outs[0]))]
 
 
@@ -210,15 +226,14 @@ def reconstruct(
     rect_water = None
     if interface is not None and options.model != "none":
         rect_water = rectify(rig.left, rig.right, interface, "water")
-        maps_water = [rectification_maps(rect_water, cam, s) for s, cam in enumerate((rig.left, rig.right))]
-        diff = max(float(np.nanmax(np.abs(mw - ma))) for pair_w, pair_a in zip(maps_water, maps_air)
-                   for mw, ma in zip(pair_w, pair_a))
+        diff = _rectification_difference(rect_air, rect_water, rig)
         if diff > options.same_rectification_px:
+            maps_water = [rectification_maps(rect_water, cam, s) for s, cam in enumerate((rig.left, rig.right))]
             _, rect_left_w, _, disp_w, _ = _match(rect_water, rig, left_image, right_image, z_range[0],
                                                              min(z_range[1], level), options)
             sets.append(("water", rect_water, maps_water, rect_left_w, disp_w))
         else:
-            sets = [("both", rect_water, maps_water, rect_left_air, disp_air)]
+            sets = [("both", rect_water, maps_air, rect_left_air, disp_air)]
     timings["rectify+match water (s)"] = time.perf_counter() - t1
     t2 = time.perf_counter()
 
@@ -229,17 +244,16 @@ def reconstruct(
         rl, rr, v, u = _pairs_from_disparity(disp)
         px_l = _to_real(rect, rig, rl, 0)
         px_r = _to_real(rect, rig, rr, 1)
-        p_air, gap_air, p_exact, gap_exact, ok, p_fo, gap_fo = _triangulate(rig, itf_for_math, px_l, px_r)
+        model = options.model if interface is not None else "none"
+        p_air, gap_air, p_under, gap_under, ok = _triangulate(rig, itf_for_math, px_l, px_r, model)
         colour = rect_left[v, u] if rect_left.ndim == 3 else np.repeat(rect_left[v, u][:, None], 3, axis=1)
         above = (p_air @ np.asarray(itf_for_math.normal) - float(itf_for_math.level)) >= 0
         if options.model == "none" or interface is None:
             keep = np.ones(len(p_air), bool) if kind in ("air", "both") else np.zeros(len(p_air), bool)
             chosen, gap, sub = p_air, gap_air, ~above
         else:
-            under = p_exact if options.model == "exact" else p_fo
-            under_gap = gap_exact if options.model == "exact" else gap_fo
-            chosen = np.where(above[:, None], p_air, under)
-            gap = np.where(above, gap_air, under_gap)
+            chosen = np.where(above[:, None], p_air, p_under)
+            gap = np.where(above, gap_air, gap_under)
             sub = ~above
             if kind == "air":
                 keep = above
@@ -254,7 +268,8 @@ def reconstruct(
         submerged.append(sub[keep])
         gaps.append(gap[keep])
         if rect_water is not None and kind in ("water", "both"):
-            parallax = _vertical_parallax(rect_water, rig, interface, p_exact[keep & ~above])
+            if options.model == "exact":
+                parallax = _vertical_parallax(rect_water, rig, interface, p_under[keep & ~above])
     timings["triangulate (s)"] = time.perf_counter() - t2
 
     survey = Survey(
@@ -283,6 +298,21 @@ def reconstruct(
     return survey, summary
 
 
+def _rectification_difference(rect_a: Rectification, rect_b: Rectification, rig: Rig, step: int = 16) -> float:
+    """Largest distance (pixels) between the real pixels two rectifications map a coarse grid to."""
+    w, h = rect_a.size
+    u, v = np.meshgrid(np.arange(0, w, step, dtype=np.float64), np.arange(0, h, step, dtype=np.float64))
+    grid = jnp.asarray(np.stack([u.ravel(), v.ravel()], axis=-1))
+    worst = 0.0
+    for side, cam in enumerate((rig.left, rig.right)):
+        a, ok_a = rectified_to_real_jit(rect_a, cam, side, grid)
+        b, ok_b = rectified_to_real_jit(rect_b, cam, side, grid)
+        ok = np.asarray(ok_a & ok_b)
+        if ok.any():
+            worst = max(worst, float(np.max(np.abs(np.asarray(a - b))[ok])))
+    return worst
+
+
 def _vertical_parallax(rect: Rectification, rig: Rig, interface: Interface, points: np.ndarray) -> np.ndarray:
     """Vertical parallax (pixels) between the water-rectified images of exact under-water points.
 
@@ -290,9 +320,14 @@ def _vertical_parallax(rect: Rectification, rig: Rig, interface: Interface, poin
     """
     if points.shape[0] == 0:
         return np.zeros(0)
-    sample = points[:: max(1, points.shape[0] // 20000)]
+    sample = points[np.linspace(0, points.shape[0] - 1, PARALLAX_SAMPLES).astype(int)]
+    return np.asarray(_parallax_jit(rect, rig.left, rig.right, interface, jnp.asarray(sample)))
+
+
+@jax.jit
+def _parallax_jit(rect, left, right, interface, points):
     rows = []
-    for side, cam in enumerate((rig.left, rig.right)):
-        px, _ = project_refracted(cam, interface, jnp.asarray(sample))
-        rows.append(np.asarray(real_to_rectified(rect, cam, side, px))[:, 1])
+    for side, cam in enumerate((left, right)):
+        px, _ = project_refracted(cam, interface, points)
+        rows.append(real_to_rectified(rect, cam, side, px)[:, 1])
     return rows[0] - rows[1]

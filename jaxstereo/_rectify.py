@@ -8,12 +8,12 @@ epipolar lines of under-water points become (nearly) straight rows.
 
 from __future__ import annotations
 
-import dataclasses
-
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
 from ._camera import Camera
 from ._errors import JaxStereoError
@@ -22,25 +22,25 @@ from ._interface import Interface
 from ._refraction import intersect_plane
 
 
-@dataclasses.dataclass(frozen=True)
-class Rectification:
-    """A rectified stereo geometry.
+class Rectification(eqx.Module):
+    """A rectified stereo geometry (a PyTree: passes through `jax.jit`).
 
-    **Fields:** `mode` ("air" or "water"); `K` (3, 3) shared rectified intrinsics, pixels; `R` (3, 3)
-    world -> rectified camera rotation (both cameras); `centers` ((3,), (3,)) rectified camera centres,
-    world metres; `size` (width, height); `interface` (for "water").
+    **Fields:** `K` (3, 3) shared rectified intrinsics, pixels; `R` (3, 3) world -> rectified camera
+    rotation (both cameras); `centers` (2, 3) rectified camera centres (left, right), world metres;
+    `interface` (for "water", else None); `mode` ("air" or "water", static); `size` (width, height), static.
     """
 
-    mode: str
-    K: np.ndarray
-    R: np.ndarray
-    centers: tuple[np.ndarray, np.ndarray]
-    size: tuple[int, int]
+    K: Float[Array, "3 3"]
+    R: Float[Array, "3 3"]
+    centers: Float[Array, "2 3"]
     interface: Interface | None
+    mode: str = eqx.field(static=True)
+    size: tuple[int, int] = eqx.field(static=True)
 
     @property
     def baseline_m(self) -> float:
-        return float(np.linalg.norm(self.centers[1] - self.centers[0]))
+        c = np.asarray(self.centers)
+        return float(np.linalg.norm(c[1] - c[0]))
 
     @property
     def focal_px(self) -> float:
@@ -79,7 +79,8 @@ def rectify(left: Camera, right: Camera, interface: Interface | None, mode: str)
         d = R @ np.asarray(cam.pose.R)[2]
         shift.append(f * d[:2] / d[2])
     K[:2, 2] -= np.mean(shift, axis=0)
-    return Rectification(mode, K, R, (c0, c1), (w, h), interface)
+    return Rectification(jnp.asarray(K), jnp.asarray(R), jnp.asarray(np.stack([c0, c1])),
+                         interface if mode == "water" else None, mode, (w, h))
 
 
 def rectified_to_real(rect: Rectification, camera: Camera, side: int, pixels):
@@ -88,10 +89,10 @@ def rectified_to_real(rect: Rectification, camera: Camera, side: int, pixels):
     Air: a pure rotation about the camera centre. Water: the virtual ray is intersected with the
     interface plane and that point projected by the real camera (with its distortion).
     """
-    K_inv = jnp.asarray(np.linalg.inv(rect.K))
+    K_inv = jnp.linalg.inv(rect.K)
     hom = jnp.concatenate([pixels, jnp.ones_like(pixels[..., :1])], axis=-1)
-    d = (hom @ K_inv.T) @ jnp.asarray(rect.R)
-    center = jnp.asarray(rect.centers[side])
+    d = (hom @ K_inv.T) @ rect.R
+    center = rect.centers[side]
     if rect.mode == "air":
         return camera.project(center + d), jnp.ones(pixels.shape[:-1], bool)
     itf = rect.interface
@@ -105,9 +106,9 @@ def real_to_rectified(rect: Rectification, camera: Camera, side: int, pixels):
     if rect.mode == "water":
         itf = rect.interface
         hit, _ = intersect_plane(origin, d, itf.normal, itf.level)
-        d = hit - jnp.asarray(rect.centers[side])
-    p = d @ jnp.asarray(rect.R).T
-    p = p @ jnp.asarray(rect.K).T
+        d = hit - rect.centers[side]
+    p = d @ rect.R.T
+    p = p @ rect.K.T
     return p[..., :2] / p[..., 2:3]
 
 
@@ -118,8 +119,7 @@ def rectification_maps(rect: Rectification, camera: Camera, side: int) -> tuple[
     w, h = rect.size
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pixels = jnp.asarray(np.stack([u, v], axis=-1))
-    fn = jax.jit(lambda cam, p: rectified_to_real(rect, cam, side, p))
-    real, ok = fn(camera, pixels)
+    real, ok = rectified_to_real_jit(rect, camera, side, pixels)
     real = np.asarray(real, dtype=np.float32)
     real[~np.asarray(ok)] = -1.0
     return real[..., 0], real[..., 1]
@@ -128,3 +128,7 @@ def rectification_maps(rect: Rectification, camera: Camera, side: int) -> tuple[
 def remap(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """Warp a real image into the rectified frame (bilinear; black outside)."""
     return cv2.remap(image, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+rectified_to_real_jit = jax.jit(rectified_to_real, static_argnums=2)
+real_to_rectified_jit = jax.jit(real_to_rectified, static_argnums=2)
