@@ -117,6 +117,53 @@ def _cmd_calibrate(args) -> int:
     return 0
 
 
+def _cmd_reconstruct(args) -> int:
+    import time
+
+    from ._images import read_image
+    from ._io import write_text_atomic
+    from ._matching import MatchOptions
+    from ._reconstruct import ReconstructOptions, reconstruct
+    from ._rig import load_rig
+    from ._survey import plot_survey_preview, save_ply, save_survey, survey_summary_json
+
+    output = Path(args.output)
+    if output.suffix != ".npz":
+        raise JaxStereoError(f"output {args.output!r} must end in .npz")
+    start = time.perf_counter()
+    rig = load_rig(args.rig)
+    left = read_image(args.left)
+    right = read_image(args.right)
+    load_s = time.perf_counter() - start
+    z_range = tuple(args.z_range) if args.z_range else None
+    if z_range is not None and not z_range[0] < z_range[1]:
+        raise JaxStereoError(f"--z-range must be ZMIN ZMAX with ZMIN < ZMAX, got {args.z_range}")
+    options = ReconstructOptions(model=args.model, z_range_m=z_range, match=MatchOptions(block_size=args.block_size))
+    survey, summary = reconstruct(left, right, rig, args.water_level, options)
+    start = time.perf_counter()
+    save_survey(survey, output)
+    if args.ply:
+        save_ply(survey, args.ply)
+    write_s = time.perf_counter() - start
+    summary["seconds"] = {"load (s)": load_s, **summary["seconds"], "write (s)": write_s}
+    preview = Path(args.preview) if args.preview else output.with_name(output.stem + "_preview.png")
+    plot_survey_preview(survey, rig.image_size, preview,
+                        f"{output.name}: {len(survey)} points, model {survey.model}, "
+                        f"{100 * summary['submerged_fraction']:.0f}% submerged")
+    summary_path = output.with_name(output.stem + "_summary.json")
+    write_text_atomic(summary_path, survey_summary_json(summary) + "\n")
+    level = "dry" if summary["water_level_m"] != summary["water_level_m"] else f"{summary['water_level_m']:.4f} m"
+    print(f"reconstruct: model {survey.model}, water level {level}")
+    print(f"  points                      {len(survey)}")
+    print(f"  submerged fraction          {summary['submerged_fraction']:.3f}")
+    print(f"  vertical parallax mean/max  {summary['vertical_parallax_px_mean']:.3f} / "
+          f"{summary['vertical_parallax_px_max']:.3f} px (first-order rectification, under water)")
+    for stage, seconds in summary["seconds"].items():
+        print(f"  {stage:<27} {seconds:.2f}")
+    print(f"survey: {output}\npreview: {preview}\nsummary: {summary_path}" + (f"\nply: {args.ply}" if args.ply else ""))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jaxstereo",
@@ -158,6 +205,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-outliers", action="store_true", help="do not drop views with outlying errors")
     p.add_argument("--no-refine", action="store_true", help="skip the optimistix refinement of the world frame")
     p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser(
+        "reconstruct",
+        help="dense survey of a partly submerged scene from one stereo pair",
+        description="Rectify, match (SGBM) and triangulate a wet stereo pair with exact refraction (or the "
+        "first-order model, or none); writes the survey .npz, a preview PNG and a summary JSON.",
+    )
+    p.add_argument("left", help="left image")
+    p.add_argument("right", help="right image")
+    p.add_argument("--rig", required=True, help="rig JSON (from jaxstereo calibrate or refine)")
+    p.add_argument("--water-level", type=float, help="water level, m (world Z); default: the rig's interface, "
+                   "or a dry survey if it has none")
+    p.add_argument("--model", choices=["exact", "first-order", "none"], default="exact",
+                   help="refraction model for under-water points (default exact)")
+    p.add_argument("--z-range", type=float, nargs=2, metavar=("ZMIN", "ZMAX"),
+                   help="height range of the scene, m, bounding the disparity search (default -0.05 to level + 0.4)")
+    p.add_argument("--block-size", type=int, default=5, help="SGBM block size, pixels (odd, default 5)")
+    p.add_argument("-o", "--output", required=True, help="survey .npz to write")
+    p.add_argument("--ply", help="also write the points as PLY")
+    p.add_argument("--preview", help="preview PNG (default: next to the survey, *_preview.png)")
+    p.set_defaults(func=_cmd_reconstruct)
     return parser
 
 

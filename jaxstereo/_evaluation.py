@@ -1,0 +1,46 @@
+"""Accuracy against ground truth: errors per layer of depth below the water."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def layer_errors(points: np.ndarray, true_z: np.ndarray, water_level: float, layer_m: float = 0.05,
+                 min_points: int = 50) -> list[dict]:
+    """Vertical errors of surveyed points grouped in layers of depth below the water.
+
+    **Arguments:** `points` (N, 3) world metres; `true_z` (N,) the true surface height under each
+    point, metres; `water_level` metres; `layer_m` layer thickness; layers with fewer than
+    `min_points` points are left out.
+
+    **Returns:** one dict per layer (shallowest first, emerged layers have negative depth) with
+    `depth_from_m`, `depth_to_m`, `n`, `median_mm`, `rmse_mm`, `max_abs_mm`, `p95_abs_mm`.
+    """
+    err = points[:, 2] - true_z
+    depth = water_level - true_z
+    lo = np.floor(depth.min() / layer_m) * layer_m
+    rows = []
+    for start in np.arange(lo, depth.max() + 1e-12, layer_m):
+        m = (depth >= start) & (depth < start + layer_m)
+        if m.sum() < min_points:
+            continue
+        e = err[m]
+        rows.append(dict(depth_from_m=float(start), depth_to_m=float(start + layer_m), n=int(m.sum()),
+                         median_mm=float(1e3 * np.median(e)), rmse_mm=float(1e3 * np.sqrt(np.mean(e**2))),
+                         max_abs_mm=float(1e3 * np.max(np.abs(e))), p95_abs_mm=float(1e3 * np.percentile(np.abs(e), 95))))
+    return rows
+
+
+def layer_table_markdown(results: dict[str, list[dict]], column: str = "median_mm") -> str:
+    """One Markdown table, a row per depth layer and a column per model, of `column` (mm)."""
+    models = list(results)
+    layers = sorted({(r["depth_from_m"], r["depth_to_m"]) for rows in results.values() for r in rows})
+    lines = ["| depth below water (m) | " + " | ".join(f"{m} {column.replace('_mm', '')} (mm)" for m in models) + " |",
+             "|---|" + "---:|" * len(models)]
+    for a, b in layers:
+        cells = []
+        for m in models:
+            match = [r for r in results[m] if abs(r["depth_from_m"] - a) < 1e-9]
+            cells.append(f"{match[0][column]:+.2f}" if match else "")
+        lines.append(f"| {a:+.2f} to {b:+.2f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
