@@ -28,7 +28,8 @@ from ._first_order import virtual_camera
 from ._interface import Interface, check_camera_above
 from ._matching import MatchOptions, disparity_search_range, refine_disparity, sgbm_disparity
 from ._precision import float64
-from ._rectify import Rectification, real_to_rectified, rectification_maps, rectified_to_real_jit, rectify, remap
+from ._rectify import (Rectification, real_to_rectified, rectification_maps, rectified_rays, rectified_to_real_jit,
+                       rectify, remap)
 from ._refraction import intersect_plane, project_refracted, refract_directions
 from ._rig import Rig, rig_to_dict
 from ._survey import Survey
@@ -127,19 +128,46 @@ def _pairs_from_disparity(disparity):
     return left, right, v, u
 
 
-def _triangulate_chunk(left_cam: Camera, right_cam: Camera, interface: Interface, px_l, px_r, model: str):
-    """In-air triangulation of real-pixel pairs, and the under-water one of `model`.
+def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera, interface: Interface, rl, rr,
+                       max_gap, model: str, kind: str):
+    """Triangulate rectified-pixel pairs and choose each match's point; no undistortion needed.
 
-    **Returns:** `(p_air, gap_air, p_water, gap_water, ok_water)`; for model "none" the water part
-    repeats the air part.
+    A match whose in-air point lies above the water is emerged (in-air point); otherwise its point is
+    the under-water triangulation of `model`. Matches from the "air" rectification keep only emerged
+    points, those from the "water" one only submerged points ("both": all).
+
+    **Returns:** `(points, gap, submerged, keep, left_pixels)`.
     """
-    o1, d1 = left_cam.backproject(px_l)
-    o2, d2 = right_cam.backproject(px_r)
-    p_air, gap_air = triangulate_rays(o1, d1, o2, d2)
+    p_air, gap_air, p_water, gap_water, ok, left_pixels = _triangulate_models(rect, left_cam, right_cam, interface,
+                                                                               rl, rr, model)
+    above = interface.height_of(p_air) >= 0
     if model == "none":
-        return p_air, gap_air, p_air, gap_air, jnp.ones_like(gap_air, dtype=bool)
+        points, gap = p_air, gap_air
+        keep = jnp.full(above.shape, kind in ("air", "both"))
+    else:
+        points = jnp.where(above[:, None], p_air, p_water)
+        gap = jnp.where(above, gap_air, gap_water)
+        keep = {"air": above, "water": ~above & ok, "both": above | ok}[kind]
+    keep = keep & jnp.all(jnp.isfinite(points), axis=1) & (gap <= max_gap)
+    return points, gap, ~above, keep, left_pixels
+
+
+def _triangulate_models(rect: Rectification, left_cam: Camera, right_cam: Camera, interface: Interface, rl, rr,
+                        model: str):
+    """Triangulate rectified-pixel pairs in air and under water with `model`.
+
+    **Returns:** `(p_air, gap_air, p_water, gap_water, ok_water, left_pixels)`; for model "none" the
+    water part repeats the air part. `left_pixels` are the real left-image pixels of the matches.
+    """
+    rays = [rectified_rays(rect, cam, side, px) for side, cam, px in ((0, left_cam, rl), (1, right_cam, rr))]
+    (o1, d1, _), (o2, d2, _) = rays
+    p_air, gap_air = triangulate_rays(o1, d1, o2, d2)
+    origin_l, dir_l, surface_l = rays[0]
+    left_pixels = left_cam.project(surface_l if rect.mode == "water" else origin_l + dir_l)
+    if model == "none":
+        return p_air, gap_air, p_air, gap_air, jnp.ones_like(gap_air, dtype=bool), left_pixels
     water_rays = []
-    for cam, o, d in ((left_cam, o1, d1), (right_cam, o2, d2)):
+    for cam, (o, d, _) in zip((left_cam, right_cam), rays):
         hit, s = intersect_plane(o, d, interface.normal, interface.level)
         if model == "exact":
             direction, ok = refract_directions(d, interface.normal, interface.n_air, interface.n_water)
@@ -150,38 +178,26 @@ def _triangulate_chunk(left_cam: Camera, right_cam: Camera, interface: Interface
         water_rays.append((hit, direction, ok & (s > 0) & jnp.isfinite(s)))
     (a1, b1, ok1), (a2, b2, ok2) = water_rays
     p_water, gap_water = triangulate_rays(a1, b1, a2, b2)
-    return p_air, gap_air, p_water, gap_water, ok1 & ok2
+    return p_air, gap_air, p_water, gap_water, ok1 & ok2, left_pixels
 
 
-_triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=5)
+_triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=(7, 8))
 
 
-def _to_real(rect, rig, px_rect, side):
-    cam = rig.left if side == 0 else rig.right
-    out = []
-    for start in range(0, px_rect.shape[0], CHUNK):
-        chunk = px_rect[start : start + CHUNK]
-        pad = CHUNK - chunk.shape[0]
-        res, _ = rectified_to_real_jit(rect, cam, side, jnp.asarray(np.pad(chunk, ((0, pad), (0, 0)))))
-        out.append(np.asarray(res)[: chunk.shape[0]])
-    return np.concatenate(out) if out else np.zeros((0, 2))
-
-
-def _triangulate(rig, interface, px_l, px_r, model):
-    """Triangulate real-pixel pairs in chunks of fixed size (one compilation per model)."""
-    n = px_l.shape[0]
+def _triangulate(rect, rig, interface, rl, rr, max_gap, model, kind):
+    """`_triangulate_chunk` in chunks of fixed size (one compilation per model and kind); numpy out."""
+    n = rl.shape[0]
     outs = []
     for start in range(0, n, CHUNK):
-        a = px_l[start : start + CHUNK]
-        b = px_r[start : start + CHUNK]
+        a = rl[start : start + CHUNK]
+        b = rr[start : start + CHUNK]
         pad = CHUNK - a.shape[0]
         a = jnp.asarray(np.pad(a, ((0, pad), (0, 0)), constant_values=1.0))
         b = jnp.asarray(np.pad(b, ((0, pad), (0, 0)), constant_values=1.0))
-        res = _triangulate_chunk_jit(rig.left, rig.right, interface, a, b, model)
-        outs.append([np.asarray(r)[: n - start if pad else CHUNK] for r in res])
+        res = _triangulate_chunk_jit(rect, rig.left, rig.right, interface, a, b, max_gap, model, kind)
+        outs.append([np.asarray(r)[: a.shape[0] - pad] for r in res])
     if not outs:
-        empty = np.zeros((0, 3))
-        return empty, np.zeros(0), empty, np.zeros(0), np.zeros(0, bool)
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool), np.zeros(0, bool), np.zeros((0, 2))
     return [np.concatenate([o[i] for o in outs]) for i in range(len(outs[0]))]
 
 
@@ -242,34 +258,19 @@ def reconstruct(
     parallax = np.zeros(0)
     for kind, rect, _maps, rect_left, disp in sets:
         rl, rr, v, u = _pairs_from_disparity(disp)
-        px_l = _to_real(rect, rig, rl, 0)
-        px_r = _to_real(rect, rig, rr, 1)
         model = options.model if interface is not None else "none"
-        p_air, gap_air, p_under, gap_under, ok = _triangulate(rig, itf_for_math, px_l, px_r, model)
-        colour = rect_left[v, u] if rect_left.ndim == 3 else np.repeat(rect_left[v, u][:, None], 3, axis=1)
-        above = (p_air @ np.asarray(itf_for_math.normal) - float(itf_for_math.level)) >= 0
-        if options.model == "none" or interface is None:
-            keep = np.ones(len(p_air), bool) if kind in ("air", "both") else np.zeros(len(p_air), bool)
-            chosen, gap, sub = p_air, gap_air, ~above
-        else:
-            chosen = np.where(above[:, None], p_air, p_under)
-            gap = np.where(above, gap_air, gap_under)
-            sub = ~above
-            if kind == "air":
-                keep = above
-            elif kind == "water":
-                keep = ~above & ok
-            else:
-                keep = above | ok
-        keep &= np.all(np.isfinite(chosen), axis=1) & (gap <= options.max_ray_gap_m)
-        points.append(chosen[keep])
-        colours.append(colour[keep])
-        pixels.append(px_l[keep])
-        submerged.append(sub[keep])
-        gaps.append(gap[keep])
-        if rect_water is not None and kind in ("water", "both"):
-            if options.model == "exact":
-                parallax = _vertical_parallax(rect_water, rig, interface, p_under[keep & ~above])
+        if model == "none":
+            kind = "both" if kind in ("air", "both") else kind
+        chosen, gap, sub, keep, px_l = _triangulate(rect, rig, itf_for_math, rl, rr, options.max_ray_gap_m, model, kind)
+        idx = np.nonzero(keep)[0]
+        colour = rect_left[v[idx], u[idx]]
+        points.append(chosen[idx])
+        colours.append(colour if colour.ndim == 2 else np.repeat(colour[:, None], 3, axis=1))
+        pixels.append(px_l[idx])
+        submerged.append(sub[idx])
+        gaps.append(gap[idx])
+        if rect_water is not None and kind in ("water", "both") and model == "exact":
+            parallax = _vertical_parallax(rect_water, rig, interface, points[-1][submerged[-1]])
     timings["triangulate (s)"] = time.perf_counter() - t2
 
     survey = Survey(

@@ -100,6 +100,26 @@ def rectified_to_real(rect: Rectification, camera: Camera, side: int, pixels):
     return camera.project(hit), (s > 0) & jnp.isfinite(s)
 
 
+def rectified_rays(rect: Rectification, camera: Camera, side: int, pixels):
+    """Real-camera rays of rectified pixels (..., 2), without any distortion round trip.
+
+    **Returns:** `(origin, direction, surface)`: the real camera centre broadcast (..., 3), unit
+    directions of the real rays in the world (..., 3), and for "water" the points where the rays
+    cross the interface (..., 3) (for "air": the same as `origin`).
+    """
+    K_inv = jnp.linalg.inv(rect.K)
+    hom = jnp.concatenate([pixels, jnp.ones_like(pixels[..., :1])], axis=-1)
+    d = (hom @ K_inv.T) @ rect.R
+    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+    origin = jnp.broadcast_to(camera.center, d.shape)
+    if rect.mode == "air":
+        return origin, d, origin
+    itf = rect.interface
+    hit, _ = intersect_plane(jnp.broadcast_to(rect.centers[side], d.shape), d, itf.normal, itf.level)
+    real = hit - origin
+    return origin, real / jnp.linalg.norm(real, axis=-1, keepdims=True), hit
+
+
 def real_to_rectified(rect: Rectification, camera: Camera, side: int, pixels):
     """Inverse of `rectified_to_real`: real pixels (..., 2) -> rectified pixels (..., 2)."""
     origin, d = camera.backproject(pixels)
@@ -117,6 +137,12 @@ def real_to_rectified(rect: Rectification, camera: Camera, side: int, pixels):
 def rectification_maps(rect: Rectification, camera: Camera, side: int) -> tuple[np.ndarray, np.ndarray]:
     """`cv2.remap` maps (float32 (h, w) each) from the rectified image of `side` to the real image."""
     w, h = rect.size
+    if rect.mode == "air":
+        # A rotation about the camera centre: OpenCV's optimised map (R: camera frame -> rectified frame).
+        K = np.asarray(camera.K, dtype=np.float64)
+        R = np.asarray(rect.R) @ np.asarray(camera.pose.R).T
+        dist = np.asarray(camera.dist, dtype=np.float64)
+        return cv2.initUndistortRectifyMap(K, dist, R, np.asarray(rect.K), (w, h), cv2.CV_32FC1)
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pixels = jnp.asarray(np.stack([u, v], axis=-1))
     real, ok = rectified_to_real_jit(rect, camera, side, pixels)
