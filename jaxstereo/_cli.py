@@ -6,14 +6,14 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from ._errors import JaxStereoError
 
 
 def _cmd_incidence_report(args) -> int:
     from ._incidence import IncidenceRig, incidence_report, plot_incidence_report
     from ._io import write_text_atomic
-
-    import numpy as np
 
     rig = IncidenceRig(
         height_m=args.height,
@@ -48,8 +48,6 @@ def _cmd_calibrate(args) -> int:
     from ._images import expand_images, read_image, read_images_same_size
     from ._plots import plot_calibration_errors
     from ._rig import save_rig
-
-    import numpy as np
 
     board = BoardSpec.parse(args.board)
     left_paths = expand_images(args.left, "left images")
@@ -164,6 +162,55 @@ def _cmd_reconstruct(args) -> int:
     return 0
 
 
+def _cmd_grid(args) -> int:
+    from ._grid import fill_holes, grid_delaunay, grid_median, save_dem
+    from ._survey import load_survey
+
+    survey = load_survey(args.survey)
+    if len(survey) == 0:
+        raise JaxStereoError(f"survey {args.survey!r} holds no points")
+    if not args.spacing > 0:
+        raise JaxStereoError(f"--spacing must be positive, got {args.spacing}")
+    if args.method == "delaunay":
+        dem = grid_delaunay(survey.points, args.spacing)
+    else:
+        dem = fill_holes(grid_median(survey.points, args.spacing), args.max_gap)
+    save_dem(dem, args.output)
+    filled = float(np.isfinite(dem.z).mean()) if dem.z.size else 0.0
+    print(f"grid: {len(survey)} points -> {dem.z.shape[1]} x {dem.z.shape[0]} cells of {args.spacing:g} m "
+          f"({100 * filled:.0f}% with data), method {args.method}\nDEM: {args.output}")
+    return 0
+
+
+def _cmd_damage(args) -> int:
+    from ._damage import parse_slope
+    from ._damage_report import stretch_damage, write_damage_report
+    from ._grid import grid_extent, load_surface
+    from ._survey import load_survey
+
+    if not (args.dn50 > 0):
+        raise JaxStereoError(f"--dn50 must be positive (metres), got {args.dn50}")
+    cot = parse_slope(args.slope)
+    spacing = args.spacing
+    before = load_surface(args.before, spacing, max_gap_m=args.max_gap)
+    after = load_surface(args.after, spacing, before.x, before.y, max_gap_m=args.max_gap)
+    if not np.any(np.isfinite(before.z) & np.isfinite(after.z)):
+        raise JaxStereoError(f"{args.before!r} and {args.after!r} do not overlap: are they in the same world frame?")
+    origin = tuple(args.slope_origin) if args.slope_origin else None
+    result = stretch_damage(before, after, args.dn50, cot, args.swl, origin, args.profile_spacing)
+    paths = write_damage_report(result, before, after, args.output)
+    a = result.averaged
+    print(f"damage: Dn50 {args.dn50:g} m, slope 1:{cot:g}, SWL {args.swl:g} m, {len(result.profiles)} profiles")
+    print(f"  averaged profile   A_e {a.A_e:.5f} m2  L_e {a.L_e:.3f} m  d_e {a.d_e:.4f} m  S {a.S:.2f}  E2D {a.E2D:.2f}")
+    print(f"  over the stretch   S mean {result.S_mean:.2f} (S > {result.threshold:g})  S max {result.S_max:.2f}  "
+          f"L_e max {result.L_e_max:.3f} m  d_e max {result.d_e_max:.4f} m")
+    print(f"  3-D                eroded {result.volumes.eroded_m3 * 1e6:.0f} cm3  accreted "
+          f"{result.volumes.accreted_m3 * 1e6:.0f} cm3  E3D {result.volumes.E3D:.2f}")
+    print(f"  damage level       {result.level}")
+    print("report: " + ", ".join(str(p) for p in paths))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jaxstereo",
@@ -226,6 +273,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ply", help="also write the points as PLY")
     p.add_argument("--preview", help="preview PNG (default: next to the survey, *_preview.png)")
     p.set_defaults(func=_cmd_reconstruct)
+
+    p = sub.add_parser("grid", help="grid a survey into a DEM (median per cell, or Delaunay as the paper)",
+                       description="Grid a survey .npz into a DEM .npz (x, y, z with NaN where no data, spacing).")
+    p.add_argument("survey", help="survey .npz")
+    p.add_argument("--spacing", type=float, default=0.005, help="cell size, m (default 0.005)")
+    p.add_argument("--method", choices=["median", "delaunay"], default="median",
+                   help="median per cell (fast, robust; default) or linear on the Delaunay triangulation")
+    p.add_argument("--max-gap", type=float, default=0.0, help="fill holes up to this size, m (median only)")
+    p.add_argument("-o", "--output", required=True, help="DEM .npz to write")
+    p.set_defaults(func=_cmd_grid)
+
+    p = sub.add_parser("damage", help="armour-layer damage between two surveys or DEMs: S, E2D, E3D, volumes",
+                       description="Compare a before and an after survey (or DEM): per-profile and averaged damage "
+                       "(A_e, L_e, d_e, S, E2D), eroded and accreted volumes and E3D; JSON, CSV and PNG report.")
+    p.add_argument("before", help="survey or DEM .npz before the test")
+    p.add_argument("after", help="survey or DEM .npz after the test")
+    p.add_argument("--dn50", type=float, required=True, help="nominal diameter of the armour units, m")
+    p.add_argument("--slope", required=True, help="design slope: cotangent (2) or V:H (1:2)")
+    p.add_argument("--swl", type=float, required=True, help="still water level, m (world Z)")
+    p.add_argument("--slope-origin", type=float, nargs=2, metavar=("X", "Z"),
+                   help="a point of the design slope line (default: fitted near the SWL)")
+    p.add_argument("--spacing", type=float, default=0.005, help="grid spacing for surveys, m (default 0.005)")
+    p.add_argument("--max-gap", type=float, default=0.01, help="fill holes up to this size, m (default 0.01)")
+    p.add_argument("--profile-spacing", type=float, help="distance between profiles, m (default Dn50)")
+    p.add_argument("-o", "--output", required=True, help="report folder")
+    p.set_defaults(func=_cmd_damage)
     return parser
 
 

@@ -63,3 +63,94 @@ def grid_median(points: np.ndarray, spacing: float, x: np.ndarray | None = None,
     out = np.full(x.size * y.size, np.nan)
     out[has] = 0.5 * (z_sorted[lo] + z_sorted[hi])
     return DEM(x, y, out.reshape(y.size, x.size), float(spacing))
+
+
+def fill_holes(dem: DEM, max_gap_m: float) -> DEM:
+    """Fill empty cells whose nearest data lies within `max_gap_m` (nearest value); larger holes stay NaN."""
+    from scipy import ndimage
+
+    empty = np.isnan(dem.z)
+    if not empty.any() or max_gap_m <= 0:
+        return dem
+    dist, (ii, jj) = ndimage.distance_transform_edt(empty, return_indices=True)
+    z = dem.z.copy()
+    fill = empty & (dist * dem.spacing <= max_gap_m)
+    z[fill] = dem.z[ii[fill], jj[fill]]
+    return DEM(dem.x, dem.y, z, dem.spacing)
+
+
+def grid_delaunay(points: np.ndarray, spacing: float, x: np.ndarray | None = None,
+                  y: np.ndarray | None = None) -> DEM:
+    """Linear interpolation on the Delaunay triangulation of the points (the paper's gridding).
+
+    Cells outside the points' convex hull stay NaN. Slower than `grid_median` for large clouds.
+    """
+    from scipy.interpolate import LinearNDInterpolator
+
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < 3:
+        raise JaxStereoError(f"points must be an (N >= 3, 3) array, got shape {points.shape}")
+    if x is None or y is None:
+        x, y = grid_extent(points, spacing)
+    interp = LinearNDInterpolator(points[:, :2], points[:, 2])
+    X, Y = np.meshgrid(x, y)
+    return DEM(x, y, interp(X, Y), float(spacing))
+
+
+def save_dem(dem: DEM, path) -> None:
+    """Write a DEM `.npz` (x, y, z, spacing) atomically."""
+    from pathlib import Path
+
+    from ._io import atomic_path
+
+    if Path(path).suffix != ".npz":
+        raise JaxStereoError(f"DEM file {str(path)!r} must end in .npz")
+    with atomic_path(path) as tmp:
+        np.savez(tmp, x=dem.x, y=dem.y, z=dem.z, spacing=np.array(dem.spacing), kind=np.array("dem"))
+
+
+def load_dem(path) -> DEM:
+    """Read a DEM `.npz`; `JaxStereoError` if it is not one."""
+    with np.load(path, allow_pickle=False) as data:
+        if not {"x", "y", "z", "spacing"} <= set(data.files):
+            raise JaxStereoError(f"{str(path)!r} is not a DEM (needs x, y, z, spacing)")
+        return DEM(data["x"], data["y"], data["z"], float(data["spacing"]))
+
+
+def load_surface(path, spacing: float, x=None, y=None, max_gap_m: float = 0.0) -> DEM:
+    """A DEM from a file holding a DEM or a survey (gridded by median per cell, on `x`, `y` if given)."""
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise JaxStereoError(f"{str(path)!r} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            files = set(data.files)
+    except Exception as err:
+        raise JaxStereoError(f"{str(path)!r} cannot be read as .npz ({err.__class__.__name__})") from None
+    if {"x", "y", "z", "spacing"} <= files:
+        dem = load_dem(path)
+        if x is not None and (dem.z.shape != (len(y), len(x)) or not np.allclose(dem.x, x) or not np.allclose(dem.y, y)):
+            dem = _resample(dem, x, y)
+        return dem
+    if "points" in files:
+        from ._survey import load_survey
+
+        survey = load_survey(path)
+        if len(survey) == 0:
+            raise JaxStereoError(f"survey {str(path)!r} holds no points")
+        return fill_holes(grid_median(survey.points, spacing, x, y), max_gap_m)
+    raise JaxStereoError(f"{str(path)!r} is neither a survey nor a DEM")
+
+
+def _resample(dem: DEM, x, y) -> DEM:
+    from scipy import ndimage
+
+    X, Y = np.meshgrid(x, y)
+    col = (X - dem.x[0]) / dem.spacing
+    row = (Y - dem.y[0]) / dem.spacing
+    z = ndimage.map_coordinates(np.nan_to_num(dem.z, nan=0.0), [row, col], order=1, mode="constant", cval=np.nan)
+    holes = ndimage.map_coordinates(np.isnan(dem.z).astype(float), [row, col], order=1, mode="constant", cval=1.0)
+    z[holes > 0] = np.nan
+    return DEM(np.asarray(x), np.asarray(y), z, float(x[1] - x[0]) if len(x) > 1 else dem.spacing)
