@@ -112,15 +112,17 @@ def _triangulate_any(left: Camera, right: Camera, interface: Interface, pl, pr):
 
 
 def _residuals(theta, args):
-    """Reprojection residuals (pixels, both images) then control residuals (metres, 0 where no control)."""
-    model, pl, pr, control_mask, control_z = args
+    """Reprojection residuals (pixels, both images), floor residuals (metres, 0 off the floor), then
+    control-point residuals (metres, 3 per point)."""
+    model, pl, pr, control_mask, control_z, gcp_l, gcp_r, gcp_xyz = args
     right, interface = model.unpack(theta)
     points = _triangulate_any(model.left, right, interface, pl, pr)
     ql, _ = project_refracted(model.left, interface, points)
     qr, _ = project_refracted(right, interface, points)
     reproj = jnp.concatenate([(ql - pl).ravel(), (qr - pr).ravel()])
     control = jnp.where(control_mask, points[:, 2] - control_z, 0.0)
-    return jnp.concatenate([reproj, control])
+    gcp = _triangulate_any(model.left, right, interface, gcp_l, gcp_r) - gcp_xyz
+    return jnp.concatenate([reproj, control, gcp.ravel()])
 
 
 def _robust(r, scale):
@@ -169,7 +171,8 @@ def refine_rig(
     rig: Rig, left_pixels: np.ndarray, right_pixels: np.ndarray, level_guess: float,
     refine=("water", "right-pose"), control: str | None = "floor", floor_z: float = 0.0,
     floor_band_m: float = 0.01, floor_sigma_m: float = 0.001, pixel_sigma: float = 0.3,
-    robust_sigmas: float = 3.0, max_steps: int = 100,
+    robust_sigmas: float = 3.0, max_steps: int = 100, floor_region: tuple[float, float] | None = None,
+    control_points=None, control_sigma_m: float = 0.001,
 ) -> RefineResult:
     """Refine the water level (and optionally the interface tilt and the right camera's pose).
 
@@ -185,6 +188,13 @@ def refine_rig(
     - `floor_band_m`: how far above the lowest points a correspondence may sit to count as floor.
     - `floor_sigma_m`, `pixel_sigma`: standard deviations weighting control against reprojection.
     - `robust_sigmas`: scale of the Cauchy loss, in standard deviations.
+    - `floor_region`: (x_min, x_max) world metres where the floor is bare (e.g. in front of the toe).
+    - `control_points`: `(left_pixels (k, 2), right_pixels (k, 2), xyz (k, 3))` points of known world
+      coordinates (metres) seen in both images, with standard deviation `control_sigma_m`.
+
+    A single control plane (the floor) fixes the level only while the camera poses are fixed: with
+    the right camera's rotation free too, the level trades against the cameras' convergence. Control
+    points at several heights (or a dry survey) are then needed; the standard deviations say so.
     """
     start = time.perf_counter()
     which = _check_which(refine)
@@ -214,8 +224,9 @@ def refine_rig(
     # Inliers: consistent with the refracted epipolar geometry of the guess (loose: the guess is rough).
     pl_j, pr_j = jnp.asarray(pl), jnp.asarray(pr)
     points0 = np.asarray(_triangulate_any(rig.left, rig.right, guess, pl_j, pr_j))
+    no_gcp = (jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros((0, 3)))
     err0 = np.asarray(_residuals(jnp.zeros(model.size), (model, pl_j, pr_j, jnp.zeros(len(pl), bool),
-                                                         jnp.zeros(len(pl))))[: 4 * len(pl)])
+                                                         jnp.zeros(len(pl)), *no_gcp))[: 4 * len(pl)])
     err0 = np.linalg.norm(err0.reshape(2, -1, 2), axis=-1).max(axis=0)
     inlier = np.isfinite(err0) & (err0 < 5.0) & np.all(np.isfinite(points0), axis=1)
     if inlier.sum() < MIN_CORRESPONDENCES:
@@ -223,14 +234,25 @@ def refine_rig(
                              f"at least {MIN_CORRESPONDENCES} are needed")
     pl, pr, points0 = pl[inlier], pr[inlier], points0[inlier]
     mask = np.zeros(len(pl), bool)
+    in_region = np.ones(len(pl), bool)
+    if floor_region is not None:
+        in_region = (points0[:, 0] >= floor_region[0]) & (points0[:, 0] <= floor_region[1])
     if control == "floor":
-        lowest = np.percentile(points0[:, 2], 2)
-        mask = points0[:, 2] <= lowest + floor_band_m
+        lowest = np.percentile(points0[in_region, 2], 2) if in_region.any() else np.inf
+        mask = in_region & (points0[:, 2] <= lowest + floor_band_m)
     elif control is not None:
         raise JaxStereoError(f"unknown control {control!r}: use 'floor' or None")
-    args = (model, jnp.asarray(pl), jnp.asarray(pr), jnp.asarray(mask), jnp.full(len(pl), float(floor_z)))
+    if control_points is not None:
+        gcp = tuple(jnp.asarray(np.asarray(a, dtype=np.float64).reshape(-1, k))
+                    for a, k in zip(control_points, (2, 2, 3)))
+        if not (gcp[0].shape[0] == gcp[1].shape[0] == gcp[2].shape[0]):
+            raise JaxStereoError("control points: left pixels, right pixels and coordinates differ in number")
+    else:
+        gcp = no_gcp
+    args = (model, jnp.asarray(pl), jnp.asarray(pr), jnp.asarray(mask), jnp.full(len(pl), float(floor_z)), *gcp)
     n_reproj = 4 * len(pl)
-    weights = jnp.concatenate([jnp.full(n_reproj, 1.0 / pixel_sigma), jnp.full(len(pl), 1.0 / floor_sigma_m)])
+    weights = jnp.concatenate([jnp.full(n_reproj, 1.0 / pixel_sigma), jnp.full(len(pl), 1.0 / floor_sigma_m),
+                               jnp.full(3 * gcp[0].shape[0], 1.0 / control_sigma_m)])
 
     def fn(theta, a):
         # Residuals in units of their standard deviations, then a Cauchy loss at `robust_sigmas`.
@@ -244,12 +266,12 @@ def refine_rig(
         # Re-select the floor with the refined geometry (within 3 sigma of it) and solve again from there.
         right, interface = model.unpack(theta)
         z = np.asarray(_triangulate_any(model.left, right, interface, args[1], args[2]))[:, 2]
-        mask = np.abs(z - floor_z) <= 3 * floor_sigma_m + 0.002
-        args = (model, args[1], args[2], jnp.asarray(mask), args[4])
+        mask = in_region & (np.abs(z - floor_z) <= 3 * floor_sigma_m)
+        args = (model, args[1], args[2], jnp.asarray(mask), *args[4:])
         sol = optx.least_squares(fn, solver, theta, args, max_steps=max_steps, throw=False)
         theta = sol.value
-    raw_before = np.asarray(_residuals(theta0, args))[: 4 * len(pl)]
-    raw_after = np.asarray(_residuals(theta, args))[: 4 * len(pl)]
+    raw_before = np.asarray(_residuals(theta0, args))[:n_reproj]
+    raw_after = np.asarray(_residuals(theta, args))[:n_reproj]
     rms_before = float(np.sqrt(np.mean(raw_before**2) * 2))
     rms_after = float(np.sqrt(np.mean(raw_after**2) * 2))
 
@@ -288,5 +310,32 @@ def refine_rig(
                              "level_determined": determined, "rms_before_px": rms_before, "rms_after_px": rms_after,
                              "correspondences": int(len(pl)), "control_points": int(mask.sum())}
     refined = Rig(rig.left, right, interface, calibration)
-    return RefineResult(refined, params, determined, rms_before, rms_after, int(len(pl)), int(mask.sum()),
+    return RefineResult(refined, params, determined, rms_before, rms_after, int(len(pl)),
+                        int(mask.sum()) + int(gcp[0].shape[0]),
                         int(sol.stats["num_steps"]), str(sol.result), time.perf_counter() - start)
+
+
+def refine_problem(rig: Rig, left_pixels, right_pixels, level_guess: float, refine=("water", "right-pose")):
+    """The bare least-squares problem of `refine_rig` without control (for comparisons and benchmarks).
+
+    **Returns:** `(fn, theta0, args)` with `fn(theta, args)` the residual vector (in standard deviations,
+    robust loss applied) that `refine_rig` minimises.
+    """
+    which = _check_which(refine)
+    normal = np.asarray(rig.interface.normal) if rig.interface is not None else np.array([0.0, 0.0, 1.0])
+    tilt0 = jnp.array([-np.arcsin(normal[1]), np.arctan2(normal[0], normal[2])])
+    baseline = np.asarray(rig.right.center) - np.asarray(rig.left.center)
+    baseline /= np.linalg.norm(baseline)
+    e1 = np.cross(baseline, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    model = _Model(rig.left, rig.right, jnp.asarray(float(level_guess)), tilt0, jnp.asarray(1.0),
+                   jnp.asarray(1.333), jnp.asarray(np.stack([e1, np.cross(baseline, e1)])), which)
+    pl = jnp.asarray(np.asarray(left_pixels, dtype=np.float64))
+    pr = jnp.asarray(np.asarray(right_pixels, dtype=np.float64))
+    args = (model, pl, pr, jnp.zeros(pl.shape[0], bool), jnp.zeros(pl.shape[0]),
+            jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros((0, 3)))
+
+    def fn(theta, a):
+        return _robust(_residuals(theta, a)[: 4 * pl.shape[0]] / 0.3, 3.0)
+
+    return fn, jnp.zeros(model.size), args

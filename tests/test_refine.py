@@ -1,0 +1,127 @@
+"""Bundle adjustment through refraction against exact synthetic correspondences."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+from scipy.optimize import least_squares
+
+import jaxstereo as js
+from jaxstereo._flume_rig import RigSpec, flume_rig
+from jaxstereo._refine import find_correspondences, refine_problem, refine_rig
+from jaxstereo._render import render_view
+from jaxstereo._rig import Rig
+from jaxstereo._scenes import Breakwater, Extent, SlopingBoard, build_scene
+
+LEVEL = 0.158
+
+
+@pytest.fixture(scope="module")
+def flume():
+    spec = Breakwater(seed=3)
+    scene = build_scene(spec)
+    left, right = flume_rig(RigSpec(image_size=(1728, 1152), water_level_m=LEVEL))
+    return spec, scene, left, right
+
+
+def _correspondences(scene, left, right, n, noise_px, seed=0):
+    """Surface points seen by both cameras, projected exactly through the water, with pixel noise."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform([-0.7, -0.4], [0.7, 0.4], (3 * n, 2))
+    z, _ = scene.heightfield.height_at(jnp.asarray(xy))
+    X = jnp.asarray(np.column_stack([xy, np.asarray(z)]))
+    water = js.Interface(LEVEL)
+    pl = np.asarray(js.project_refracted(left, water, X)[0])
+    pr = np.asarray(js.project_refracted(right, water, X)[0])
+    ok = np.all((pl > 5) & (pl < [1722, 1146]) & (pr > 5) & (pr < [1722, 1146]), axis=1)
+    pl, pr, X = pl[ok][:n], pr[ok][:n], np.asarray(X)[ok][:n]
+    return pl + rng.normal(0, noise_px, pl.shape), pr + rng.normal(0, noise_px, pr.shape), X
+
+
+def test_level_from_floor_control_starting_5cm_off(flume):
+    spec, scene, left, right = flume
+    pl, pr, _ = _correspondences(scene, left, right, 1500, 0.1)
+    floor = (-0.75, spec.toe_x_m - 2 * spec.dn50_m)  # the bare floor in front of the toe
+    result = refine_rig(Rig(left, right), pl, pr, LEVEL + 0.05, refine=("water",), control="floor",
+                        floor_region=floor)
+    level, std = result.parameters["water level (m)"]
+    assert abs(level - LEVEL) <= 1e-3
+    assert result.level_determined and std < 1e-3
+    assert result.rms_after_px <= 0.3 and result.rms_after_px < result.rms_before_px
+    assert abs(float(result.rig.interface.level) - level) < 1e-12
+
+
+def test_right_pose_comes_back_with_control_points(flume):
+    spec, scene, left, right = flume
+    pl, pr, _ = _correspondences(scene, left, right, 1500, 0.1)
+    gl, gr, gxyz = _correspondences(scene, left, right, 12, 0.05, seed=9)
+    perturb = jnp.array([np.deg2rad(0.2) / np.sqrt(3)] * 3 + [0.0, 0.002 / np.sqrt(2), 0.002 / np.sqrt(2)])
+    moved = right.with_pose(right.pose.retract(perturb))
+    result = refine_rig(Rig(left, moved), pl, pr, LEVEL + 0.05, refine=("water", "right-pose"), control="floor",
+                        floor_region=(-0.75, spec.toe_x_m - 2 * spec.dn50_m), control_points=(gl, gr, gxyz))
+    angle = np.rad2deg(np.linalg.norm(np.asarray(js.so3_log(result.rig.right.pose.R @ right.pose.R.T))))
+    assert angle <= 0.02
+    assert np.linalg.norm(np.asarray(result.rig.right.center - right.center)) <= 5e-4
+    assert result.rms_after_px <= 0.3
+    level, std = result.parameters["water level (m)"]
+    assert abs(level - LEVEL) <= 3 * std + 1e-3
+
+
+def test_level_not_determined_is_said(flume):
+    spec, scene, left, right = flume
+    pl, pr, _ = _correspondences(scene, left, right, 1500, 0.1)
+    # Two nadir cameras and no control: a change of level barely moves the rays.
+    result = refine_rig(Rig(left, right), pl, pr, LEVEL + 0.05, refine=("water",), control=None)
+    assert not result.level_determined
+    assert result.parameters["water level (m)"][1] > 2e-3
+    # The floor alone cannot fix the level once the right camera may rotate: said too.
+    result = refine_rig(Rig(left, right), pl, pr, LEVEL + 0.05, refine=("water", "right-pose"), control="floor",
+                        floor_region=(-0.75, spec.toe_x_m - 2 * spec.dn50_m))
+    assert not result.level_determined
+
+
+def test_same_minimum_as_scipy(flume):
+    _, scene, left, right = flume
+    pl, pr, _ = _correspondences(scene, left, right, 400, 0.1)
+    perturb = jnp.array([1e-3, -5e-4, 8e-4, 0.0, 1e-3, -1e-3])
+    fn, theta0, args = refine_problem(Rig(left, right.with_pose(right.pose.retract(perturb))), pl, pr, LEVEL + 0.01)
+    sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12), theta0, args, max_steps=200,
+                             throw=False)
+    assert sol.result == optx.RESULTS.successful
+    f = jax.jit(lambda t: fn(t, args))
+    J = jax.jit(jax.jacfwd(lambda t: fn(t, args)))
+    ref = least_squares(lambda t: np.asarray(f(jnp.asarray(t))), np.asarray(theta0),
+                        jac=lambda t: np.asarray(J(jnp.asarray(t))), method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    cost_optx = 0.5 * float(jnp.sum(f(sol.value) ** 2))
+    assert abs(cost_optx - ref.cost) <= 1e-6 * ref.cost
+    # Without control the minimum is flat along the level: only the well-determined rotations are compared.
+    np.testing.assert_allclose(np.asarray(sol.value)[1:4], ref.x[1:4], atol=5e-3)
+
+
+def test_sift_correspondences_agree_with_the_true_geometry():
+    spec = SlopingBoard(extent=Extent(spacing=2e-3))
+    left, right = flume_rig(RigSpec(image_size=(864, 576), water_level_m=0.18))
+    water = js.Interface(0.18)
+    scene = build_scene(spec)
+    il, ir = (render_view(c, scene.heightfield, water).image for c in (left, right))
+    pl, pr = find_correspondences(il, ir, 1000)
+    assert len(pl) >= 300
+    # Consistent with the refracted epipolar geometry: the exact triangulation re-projects onto them.
+    fn, theta0, args = refine_problem(Rig(left, right, water), pl, pr, 0.18, refine=("water",))
+    r = np.abs(np.asarray(fn(theta0, args)) * 0.3)
+    assert np.median(r) < 0.3
+
+
+def test_refine_bad_input(flume):
+    _, scene, left, right = flume
+    pl, pr, _ = _correspondences(scene, left, right, 100, 0.1)
+    rig = Rig(left, right)
+    with pytest.raises(js.JaxStereoError, match="at least 12 are needed"):
+        refine_rig(rig, pl[:5], pr[:5], LEVEL)
+    with pytest.raises(js.JaxStereoError, match="below the water plane"):
+        refine_rig(rig, pl, pr, 5.0)
+    with pytest.raises(js.JaxStereoError, match="cannot refine 'focus'"):
+        refine_rig(rig, pl, pr, LEVEL, refine=("focus",))
+    with pytest.raises(js.JaxStereoError, match="correspondences agree"):
+        refine_rig(rig, pl, np.random.default_rng(0).uniform(0, 1000, pr.shape), LEVEL)
