@@ -211,6 +211,61 @@ def _cmd_damage(args) -> int:
     return 0
 
 
+def _read_control_points(path):
+    """CSV with a header and columns u_left, v_left, u_right, v_right, x, y, z (pixels, metres)."""
+    p = Path(path)
+    if not p.is_file():
+        raise JaxStereoError(f"control points file {path!r} does not exist")
+    try:
+        data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as err:
+        raise JaxStereoError(f"control points file {path!r}: {err}") from None
+    if data.shape[1] != 7 or data.shape[0] == 0:
+        raise JaxStereoError(f"control points file {path!r} must have 7 columns "
+                             "(u_left, v_left, u_right, v_right, x, y, z) and at least one row")
+    if not np.all(np.isfinite(data)):
+        raise JaxStereoError(f"control points file {path!r} contains NaN or infinite values")
+    return data[:, 0:2], data[:, 2:4], data[:, 4:7]
+
+
+def _cmd_refine(args) -> int:
+    from ._images import read_image
+    from ._refine import find_correspondences, refine_rig
+    from ._rig import load_rig, save_rig
+
+    rig = load_rig(args.rig)
+    left, right = read_image(args.left), read_image(args.right)
+    w, h = rig.image_size
+    for name, image in (("left", left), ("right", right)):
+        if image.shape[:2] != (h, w):
+            raise JaxStereoError(f"{name} image is {image.shape[1]}x{image.shape[0]} but the rig's cameras are {w}x{h}")
+    refine = tuple(v.strip() for v in args.refine.split(",") if v.strip())
+    control, points = None, None
+    for item in args.control or []:
+        if item == "floor":
+            control = "floor"
+        elif item.endswith(".csv"):
+            points = _read_control_points(item)
+        else:
+            raise JaxStereoError(f"--control {item!r}: use 'floor' or a control-points .csv")
+    pl, pr = find_correspondences(left, right, args.max_points)
+    result = refine_rig(rig, pl, pr, args.water_level_guess, refine=refine, control=control,
+                        floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points)
+    print(f"refine: {result.n_correspondences} correspondences, {result.n_control} control terms, "
+          f"{result.steps} steps ({result.seconds:.1f} s)")
+    for name, (value, std) in result.parameters.items():
+        print(f"  {name:<34} {value:+.5f} +/- {std:.5f}")
+    print(f"  reprojection RMS before / after    {result.rms_before_px:.3f} / {result.rms_after_px:.3f} px")
+    if "water" in refine and not result.level_determined:
+        level, std = result.parameters["water level (m)"]
+        print(f"  WATER LEVEL NOT DETERMINED: its standard deviation is {1e3 * std:.1f} mm; the images cannot "
+              "fix it with this control. Add control (--control floor with --floor-x, control points) or keep "
+              "the gauge reading.")
+    save_rig(result.rig, args.output)
+    print(f"rig: {args.output}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jaxstereo",
@@ -273,6 +328,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ply", help="also write the points as PLY")
     p.add_argument("--preview", help="preview PNG (default: next to the survey, *_preview.png)")
     p.set_defaults(func=_cmd_reconstruct)
+
+    p = sub.add_parser("refine", help="water level (and tilt, right-camera pose) from a wet pair by bundle adjustment",
+                       description="Bundle adjustment through exact refraction (optimistix): refines the water level, "
+                       "optionally the interface tilt and the right camera's pose, and writes the refined rig.")
+    p.add_argument("left", help="left image")
+    p.add_argument("right", help="right image")
+    p.add_argument("--rig", required=True, help="rig JSON")
+    p.add_argument("--water-level-guess", type=float, required=True, help="starting water level, m")
+    p.add_argument("--control", action="append", metavar="floor|POINTS.csv",
+                   help="control: 'floor' (points on z = 0) and/or a CSV of control points "
+                   "(u_left,v_left,u_right,v_right,x,y,z); may be repeated")
+    p.add_argument("--floor-x", type=float, nargs=2, metavar=("XMIN", "XMAX"),
+                   help="world x range where the floor is bare (e.g. in front of the toe)")
+    p.add_argument("--refine", default="water", help="comma list of water, tilt, right-pose (default water)")
+    p.add_argument("--max-points", type=int, default=2000, help="correspondences to use (default 2000)")
+    p.add_argument("-o", "--output", required=True, help="refined rig JSON")
+    p.set_defaults(func=_cmd_refine)
 
     p = sub.add_parser("grid", help="grid a survey into a DEM (median per cell, or Delaunay as the paper)",
                        description="Grid a survey .npz into a DEM .npz (x, y, z with NaN where no data, spacing).")

@@ -315,8 +315,10 @@ def refine_rig(
                         int(sol.stats["num_steps"]), str(sol.result), time.perf_counter() - start)
 
 
-def refine_problem(rig: Rig, left_pixels, right_pixels, level_guess: float, refine=("water", "right-pose")):
-    """The bare least-squares problem of `refine_rig` without control (for comparisons and benchmarks).
+def refine_problem(rig: Rig, left_pixels, right_pixels, level_guess: float, refine=("water", "right-pose"),
+                   floor_mask=None, floor_sigma_m: float = 0.001):
+    """The least-squares problem of `refine_rig` (for comparisons and benchmarks), with the floor
+    control given explicitly by `floor_mask` (n,) (correspondences on z = 0), or none.
 
     **Returns:** `(fn, theta0, args)` with `fn(theta, args)` the residual vector (in standard deviations,
     robust loss applied) that `refine_rig` minimises.
@@ -332,10 +334,11 @@ def refine_problem(rig: Rig, left_pixels, right_pixels, level_guess: float, refi
                    jnp.asarray(1.333), jnp.asarray(np.stack([e1, np.cross(baseline, e1)])), which)
     pl = jnp.asarray(np.asarray(left_pixels, dtype=np.float64))
     pr = jnp.asarray(np.asarray(right_pixels, dtype=np.float64))
-    args = (model, pl, pr, jnp.zeros(pl.shape[0], bool), jnp.zeros(pl.shape[0]),
-            jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros((0, 3)))
+    mask = jnp.zeros(pl.shape[0], bool) if floor_mask is None else jnp.asarray(floor_mask)
+    args = (model, pl, pr, mask, jnp.zeros(pl.shape[0]), jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros((0, 3)))
+    weights = jnp.concatenate([jnp.full(4 * pl.shape[0], 1.0 / 0.3), jnp.full(pl.shape[0], 1.0 / floor_sigma_m)])
 
     def fn(theta, a):
-        return _robust(_residuals(theta, a)[: 4 * pl.shape[0]] / 0.3, 3.0)
+        return _robust(_residuals(theta, a) * weights, 3.0)
 
     return fn, jnp.zeros(model.size), args

@@ -125,3 +125,28 @@ def test_refine_bad_input(flume):
         refine_rig(rig, pl, pr, LEVEL, refine=("focus",))
     with pytest.raises(js.JaxStereoError, match="correspondences agree"):
         refine_rig(rig, pl, np.random.default_rng(0).uniform(0, 1000, pr.shape), LEVEL)
+
+
+def test_refine_command(tmp_path, capsys):
+    from jaxstereo._cli import main
+    from jaxstereo._images import write_image
+    from jaxstereo._rig import load_rig, save_rig
+
+    spec = Breakwater(seed=3, extent=Extent(spacing=1.5e-3))
+    scene = build_scene(spec)
+    left, right = flume_rig(RigSpec(image_size=(864, 576), water_level_m=LEVEL))
+    water = js.Interface(LEVEL)
+    for name, cam in (("l.png", left), ("r.png", right)):
+        write_image(tmp_path / name, render_view(cam, scene.heightfield, water).image)
+    save_rig(Rig(left, right), tmp_path / "rig.json")
+    args = ["refine", str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--rig", str(tmp_path / "rig.json"),
+            "--water-level-guess", str(LEVEL + 0.05), "-o", str(tmp_path / "wet.json")]
+    assert main(args + ["--control", "floor", "--floor-x", "-0.75", str(spec.toe_x_m - 2 * spec.dn50_m)]) == 0
+    out = capsys.readouterr().out
+    assert "water level (m)" in out and "NOT DETERMINED" not in out
+    assert abs(float(load_rig(tmp_path / "wet.json").interface.level) - LEVEL) < 2e-3
+    assert main(args) == 0  # no control: said plainly
+    assert "WATER LEVEL NOT DETERMINED" in capsys.readouterr().out
+    (tmp_path / "bad.csv").write_text("u,v\n1,2\n")
+    assert main(args + ["--control", str(tmp_path / "bad.csv")]) == 2
+    assert "must have 7 columns" in capsys.readouterr().err
