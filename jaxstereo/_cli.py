@@ -266,12 +266,25 @@ def _cmd_refine(args) -> int:
     return 0
 
 
+def _cmd_demo(args) -> int:
+    from ._demo import run_demo
+
+    run_demo(args.output)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jaxstereo",
         description="Refraction-aware stereo photogrammetry of wave-flume models through the water surface.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("demo", help="the whole survey on a synthetic flume: calibrate, refine, reconstruct, damage",
+                       description="Builds a synthetic flume (board photographs, a breakwater, three damage stages) and "
+                       "runs calibrate, refine, reconstruct, grid and damage end to end; writes a report folder.")
+    p.add_argument("-o", "--output", default="jaxstereo-demo", help="report folder (default jaxstereo-demo)")
+    p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser(
         "incidence-report",
