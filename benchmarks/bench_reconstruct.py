@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 
 import jax
-import numpy as np
 
 import jaxstereo as js
 from jaxstereo._flume_rig import RigSpec, flume_rig

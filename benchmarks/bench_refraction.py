@@ -87,8 +87,8 @@ def main(argv=None):
     ]
     print(f"exact forward projection, {jax.devices()[0].platform}, {NEWTON_ITERATIONS} Newton steps + 1, "
           f"compile {compile_s:.2f} s, max |jax - numpy| = {diff:.2e} px")
-    print(f"| implementation | points | best time (s) | points/s | ratio to numpy |")
-    print(f"|---|---:|---:|---:|---:|")
+    print("| implementation | points | best time (s) | points/s | ratio to numpy |")
+    print("|---|---:|---:|---:|---:|")
     base = rows[0][3]
     for name, count, seconds, rate in rows:
         print(f"| {name} | {count} | {seconds:.3f} | {rate / 1e6:.2f} M | {rate / base:.1f}x |")

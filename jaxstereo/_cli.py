@@ -185,8 +185,7 @@ def _cmd_grid(args) -> int:
 def _cmd_damage(args) -> int:
     from ._damage import parse_slope
     from ._damage_report import stretch_damage, write_damage_report
-    from ._grid import grid_extent, load_surface
-    from ._survey import load_survey
+    from ._grid import load_surface
 
     if not (args.dn50 > 0):
         raise JaxStereoError(f"--dn50 must be positive (metres), got {args.dn50}")

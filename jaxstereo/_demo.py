@@ -12,7 +12,6 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ._board_render import board_poses, render_board
 from ._boards import BoardSpec

@@ -96,6 +96,25 @@ class _Model(eqx.Module):
         return ("water" in self.which) + 2 * ("tilt" in self.which) + 5 * ("right-pose" in self.which)
 
 
+def _build_model(rig: Rig, level_guess: float, which: tuple[str, ...]) -> tuple[_Model, Interface]:
+    """The parameter model around the rig (its interface's normal and indices, else level defaults) and
+    the interface at the guessed level."""
+    normal = np.asarray(rig.interface.normal) if rig.interface is not None else np.array([0.0, 0.0, 1.0])
+    n_air = float(rig.interface.n_air) if rig.interface is not None else 1.0
+    n_water = float(rig.interface.n_water) if rig.interface is not None else 1.333
+    tilt0 = jnp.array([-np.arcsin(normal[1]), np.arctan2(normal[0], normal[2])])
+    baseline = np.asarray(rig.right.center) - np.asarray(rig.left.center)
+    baseline /= np.linalg.norm(baseline)
+    e1 = np.cross(baseline, [0.0, 0.0, 1.0])
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.cross(baseline, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    across = jnp.asarray(np.stack([e1, np.cross(baseline, e1)]))
+    model = _Model(rig.left, rig.right, jnp.asarray(float(level_guess)), tilt0, jnp.asarray(n_air),
+                   jnp.asarray(n_water), across, which)
+    return model, Interface(float(level_guess), normal, n_air, n_water)
+
+
 def _triangulate_any(left: Camera, right: Camera, interface: Interface, pl, pr):
     """Triangulate pixel pairs: in air where the in-air point is above the water, else through it."""
     o1, d1 = left.backproject(pl)
@@ -204,22 +223,10 @@ def refine_rig(
         raise JaxStereoError(f"{pl.shape[0]} left but {pr.shape[0]} right correspondences")
     if pl.shape[0] < MIN_CORRESPONDENCES:
         raise JaxStereoError(f"only {pl.shape[0]} correspondences; at least {MIN_CORRESPONDENCES} are needed")
-    normal = np.asarray(rig.interface.normal) if rig.interface is not None else np.array([0.0, 0.0, 1.0])
-    n_air = float(rig.interface.n_air) if rig.interface is not None else 1.0
-    n_water = float(rig.interface.n_water) if rig.interface is not None else 1.333
-    guess = Interface(float(level_guess), normal, n_air, n_water)
+    model, guess = _build_model(rig, level_guess, which)
     check_camera_above(rig.left.center, guess, "left camera")
     check_camera_above(rig.right.center, guess, "right camera")
-    tilt0 = jnp.array([-np.arcsin(normal[1]), np.arctan2(normal[0], normal[2])])
-    baseline = np.asarray(rig.right.center) - np.asarray(rig.left.center)
-    baseline /= np.linalg.norm(baseline)
-    e1 = np.cross(baseline, [0.0, 0.0, 1.0])
-    if np.linalg.norm(e1) < 1e-6:
-        e1 = np.cross(baseline, [1.0, 0.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    across = jnp.asarray(np.stack([e1, np.cross(baseline, e1)]))
-    model = _Model(rig.left, rig.right, jnp.asarray(float(level_guess)), tilt0, jnp.asarray(n_air),
-                   jnp.asarray(n_water), across, which)
+    tilt0 = model.tilt0
 
     # Inliers: consistent with the refracted epipolar geometry of the guess (loose: the guess is rough).
     pl_j, pr_j = jnp.asarray(pl), jnp.asarray(pr)
@@ -323,15 +330,7 @@ def refine_problem(rig: Rig, left_pixels, right_pixels, level_guess: float, refi
     **Returns:** `(fn, theta0, args)` with `fn(theta, args)` the residual vector (in standard deviations,
     robust loss applied) that `refine_rig` minimises.
     """
-    which = _check_which(refine)
-    normal = np.asarray(rig.interface.normal) if rig.interface is not None else np.array([0.0, 0.0, 1.0])
-    tilt0 = jnp.array([-np.arcsin(normal[1]), np.arctan2(normal[0], normal[2])])
-    baseline = np.asarray(rig.right.center) - np.asarray(rig.left.center)
-    baseline /= np.linalg.norm(baseline)
-    e1 = np.cross(baseline, [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1)
-    model = _Model(rig.left, rig.right, jnp.asarray(float(level_guess)), tilt0, jnp.asarray(1.0),
-                   jnp.asarray(1.333), jnp.asarray(np.stack([e1, np.cross(baseline, e1)])), which)
+    model, _ = _build_model(rig, level_guess, _check_which(refine))
     pl = jnp.asarray(np.asarray(left_pixels, dtype=np.float64))
     pr = jnp.asarray(np.asarray(right_pixels, dtype=np.float64))
     mask = jnp.zeros(pl.shape[0], bool) if floor_mask is None else jnp.asarray(floor_mask)

@@ -1,9 +1,7 @@
-import json
 import shutil
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from jaxstereo._cli import main
 from jaxstereo._rig import load_rig

@@ -1,6 +1,5 @@
 """Dense reconstruction against the synthetic flume's exact ground truth."""
 
-import json
 
 import numpy as np
 import pytest
@@ -12,7 +11,7 @@ from jaxstereo._grid import grid_median
 from jaxstereo._reconstruct import ReconstructOptions, reconstruct
 from jaxstereo._render import render_view
 from jaxstereo._rig import Rig
-from jaxstereo._scenes import Breakwater, Extent, SlopingBoard, build_scene
+from jaxstereo._scenes import Breakwater, SlopingBoard, build_scene
 
 PAPER = dict(image_size=(1728, 1152), water_level_m=0.18, camera_height_m=2.0, baseline_m=0.16, focal_mm=35.0)
 
