@@ -30,9 +30,3 @@ def check_shape(name: str, array, trailing: tuple[int, ...]) -> None:
     if len(shape) < n + 1 or shape[len(shape) - n :] != trailing:
         want = "(N, " + ", ".join(str(d) for d in trailing) + ")"
         raise JaxStereoError(f"{name} must have shape {want}, got {shape}")
-
-
-def check_finite(name: str, array) -> None:
-    """Raise `JaxStereoError` if a concrete `array` holds NaN or infinity."""
-    if is_concrete(array) and not np.all(np.isfinite(np.asarray(array))):
-        raise JaxStereoError(f"{name} contains NaN or infinite values")

@@ -157,4 +157,3 @@ def remap(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
 
 
 rectified_to_real_jit = jax.jit(rectified_to_real, static_argnums=2)
-real_to_rectified_jit = jax.jit(real_to_rectified, static_argnums=2)
