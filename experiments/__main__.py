@@ -6,12 +6,14 @@ import argparse
 import re
 from pathlib import Path
 
-from . import damage_evolution, incidence_limit, sloping_board
+from . import damage_evolution, incidence_limit, sloping_board, submerged_plane, wet_versus_dry
 from ._common import Output
 
 EXPERIMENTS = {
     "incidence-limit": (incidence_limit, "incidence_limit.png"),
+    "submerged-plane": (submerged_plane, "submerged_plane.png"),
     "sloping-board": (sloping_board, "sloping_board.png"),
+    "wet-versus-dry": (wet_versus_dry, "wet_versus_dry.png"),
     "damage-evolution": (damage_evolution, "stage_III/profile.png"),
 }
 ROOT = Path(__file__).resolve().parent

@@ -139,7 +139,8 @@ def _trace(camera: Camera, hf: Heightfield, interface: Interface | None, pixels,
     p_air = start + s1[:, None] * d
     if interface is None:
         return p_air, hit1, jnp.zeros_like(hit1), jnp.zeros_like(s1)
-    surface = start + s_air[:, None] * d
+    # The refraction happens where the ray crosses the interface, also when the whole scene lies under it.
+    surface = origin + jnp.where(reaches, s_if, 0.0)[:, None] * d
     d_w, ok = refract_directions(d, interface.normal, interface.n_air, interface.n_water)
     dzw = jnp.minimum(d_w[:, 2], -1e-12)
     s_w_max = jnp.where(~hit1 & ok & reaches & (d[:, 2] < 0), jnp.maximum((surface[:, 2] - z_bottom) / -dzw, 0.0), 0.0)

@@ -84,3 +84,16 @@ def test_bad_scene_input():
         RenderOptions(supersample=2)
     with pytest.raises(js.JaxStereoError, match="unknown kind"):
         scene_from_json('{"kind": "volcano", "extent": {}}')
+
+
+def test_scene_entirely_under_water_is_refracted_at_the_surface():
+    # Regression: a flat floor 0.5 m under the water, nothing above it.
+    scene = build_scene(FlatFloor(z_m=-0.5, extent=Extent(-1.0, 1.0, -0.8, 0.8, 4e-3)))
+    left, _ = flume_rig(RigSpec(image_size=(216, 144), water_level_m=0.0, camera_height_m=1.3))
+    water = js.Interface(0.0)
+    view = render_view(left, scene.heightfield, water, RenderOptions(fine_step_m=4e-3))
+    m = view.hit
+    assert m.mean() > 0.9 and view.submerged[m].all()
+    np.testing.assert_allclose(view.points[m][:, 2], -0.5, atol=1e-7)
+    pixels, _ = js.project_refracted(left, water, jnp.asarray(view.points[m]))
+    assert np.abs(np.asarray(pixels) - _pixel_centres(view)[m]).max() < 0.02
