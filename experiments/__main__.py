@@ -6,7 +6,7 @@ import argparse
 import re
 from pathlib import Path
 
-from . import damage_evolution, incidence_limit, sloping_board, submerged_plane, wet_versus_dry
+from . import damage_evolution, incidence_limit, sloping_board, submerged_plane, water_level, wet_versus_dry
 from ._common import Output
 
 EXPERIMENTS = {
@@ -15,6 +15,7 @@ EXPERIMENTS = {
     "sloping-board": (sloping_board, "sloping_board.png"),
     "wet-versus-dry": (wet_versus_dry, "wet_versus_dry.png"),
     "damage-evolution": (damage_evolution, "stage_III/profile.png"),
+    "water-level": (water_level, ""),
 }
 ROOT = Path(__file__).resolve().parent
 
@@ -28,7 +29,7 @@ def update_readme(out_root: Path, readme: Path) -> None:
             continue
         parts += [f"### {name}", "", table.read_text().strip(), ""]
         fig = out_root / name / figure
-        if fig.exists():
+        if figure and fig.exists():
             parts += [f"![{name}]({fig.relative_to(readme.parent).as_posix()})", ""]
     parts.append("<!-- results:end -->")
     text = readme.read_text()
