@@ -74,4 +74,4 @@ def run(out: Output, full: bool = False) -> None:
               "is not determined (two nadir cameras: a level change barely moves the rays); the floor fixes it. The "
               "error grows with the noise faster than the standard deviation says: eliminating the points (each "
               "triangulated from noisy pixels) biases their depth, and the floor control turns that bias into a level "
-              "bias (about -1 mm at 0.5 px, +2 mm on the 10-degree rig). Refining the points too would remove it.")
+              "bias (about -1 mm at 0.5 px, +2 mm on the 10-degree rig). Refining the points too should remove it (not tried yet).")
