@@ -13,6 +13,7 @@ from scipy.optimize import least_squares
 
 import jaxstereo as js
 from jaxstereo._refine import refine_problem
+from jaxstereo._synthetic_matches import surface_correspondences
 
 from ._common import Output
 
@@ -22,16 +23,8 @@ LEVEL = 0.158
 def _case(scene, n, noise, tilt_deg, control, seed=0):
     left, right = js.flume_rig(js.RigSpec(image_size=(1728, 1152), water_level_m=LEVEL, tilt_deg=tilt_deg,
                                           center_xy_m=(0.0, -2.158 * np.tan(np.deg2rad(tilt_deg)))))
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform([-0.7, -0.45], [0.7, 0.45], (4 * n, 2))
-    z, _ = scene.heightfield.height_at(jnp.asarray(xy))
-    X = jnp.asarray(np.column_stack([xy, np.asarray(z)]))
-    water = js.Interface(LEVEL)
-    pl = np.asarray(js.project_refracted(left, water, X)[0])
-    pr = np.asarray(js.project_refracted(right, water, X)[0])
-    ok = np.all((pl > 5) & (pl < [1722, 1146]) & (pr > 5) & (pr < [1722, 1146]), axis=1)
-    pl, pr, X = pl[ok][:n], pr[ok][:n], np.asarray(X)[ok][:n]
-    pl, pr = pl + rng.normal(0, noise, pl.shape), pr + rng.normal(0, noise, pr.shape)
+    pl, pr, X = surface_correspondences(scene.heightfield, left, right, js.Interface(LEVEL), n, noise, seed,
+                                        xy_min=(-0.7, -0.45), xy_max=(0.7, 0.45), oversample=4)
     floor = (X[:, 2] < 1e-9) if control == "floor" else None
     fn, theta0, args = refine_problem(js.Rig(left, right), pl, pr, LEVEL + 0.05, refine=("water",), floor_mask=floor)
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8)
@@ -45,8 +38,8 @@ def _case(scene, n, noise, tilt_deg, control, seed=0):
     f(theta0).block_until_ready()
     J(theta0).block_until_ready()
     start = time.perf_counter()
-    ref = least_squares(lambda t: np.asarray(f(jnp.asarray(t))), np.asarray(theta0),
-                        jac=lambda t: np.asarray(J(jnp.asarray(t))), method="lm")
+    least_squares(lambda t: np.asarray(f(jnp.asarray(t))), np.asarray(theta0),
+                  jac=lambda t: np.asarray(J(jnp.asarray(t))), method="lm")
     t_scipy = time.perf_counter() - start
     Jm = np.asarray(J(theta))
     r = np.asarray(f(theta))

@@ -13,6 +13,7 @@ from jaxstereo._refine import find_correspondences, refine_problem, refine_rig
 from jaxstereo._render import render_view
 from jaxstereo._rig import Rig
 from jaxstereo._scenes import Breakwater, Extent, SlopingBoard, build_scene
+from jaxstereo._synthetic_matches import surface_correspondences
 
 LEVEL = 0.158
 
@@ -27,16 +28,7 @@ def flume():
 
 def _correspondences(scene, left, right, n, noise_px, seed=0):
     """Surface points seen by both cameras, projected exactly through the water, with pixel noise."""
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform([-0.7, -0.4], [0.7, 0.4], (3 * n, 2))
-    z, _ = scene.heightfield.height_at(jnp.asarray(xy))
-    X = jnp.asarray(np.column_stack([xy, np.asarray(z)]))
-    water = js.Interface(LEVEL)
-    pl = np.asarray(js.project_refracted(left, water, X)[0])
-    pr = np.asarray(js.project_refracted(right, water, X)[0])
-    ok = np.all((pl > 5) & (pl < [1722, 1146]) & (pr > 5) & (pr < [1722, 1146]), axis=1)
-    pl, pr, X = pl[ok][:n], pr[ok][:n], np.asarray(X)[ok][:n]
-    return pl + rng.normal(0, noise_px, pl.shape), pr + rng.normal(0, noise_px, pr.shape), X
+    return surface_correspondences(scene.heightfield, left, right, js.Interface(LEVEL), n, noise_px, seed)
 
 
 def test_level_from_floor_control_starting_5cm_off(flume):
