@@ -142,3 +142,18 @@ def test_refine_command(tmp_path, capsys):
     (tmp_path / "bad.csv").write_text("u,v\n1,2\n")
     assert main(args + ["--control", str(tmp_path / "bad.csv")]) == 2
     assert "must have 7 columns" in capsys.readouterr().err
+    # Broken input: each a one-line error, exit 2, no rig written.
+    (tmp_path / "empty.png").write_bytes(b"")
+    write_image(tmp_path / "small.png", np.zeros((100, 150, 3), np.uint8))
+    cases = [
+        (["refine", str(tmp_path / "empty.png"), *args[2:]], "is empty (0 bytes)"),
+        (["refine", str(tmp_path / "l.png"), str(tmp_path / "small.png"), *args[3:]], "right image is 150x100"),
+        ([*args[:6], "5.0", *args[7:]], "below the water plane"),
+        ([*args, "--refine", "water,focus"], "cannot refine 'focus'"),
+    ]
+    for argv, text in cases:
+        (tmp_path / "wet.json").unlink(missing_ok=True)
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and text in err, err
+        assert not (tmp_path / "wet.json").exists()
