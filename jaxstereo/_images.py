@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import glob as _glob
+import os
+import sys
 from pathlib import Path
 
 import cv2
@@ -27,6 +30,24 @@ def expand_images(pattern_or_paths, what: str = "images") -> list[Path]:
     return paths
 
 
+@contextlib.contextmanager
+def _quiet_native_stderr():
+    """Silence file descriptor 2 (C libraries' messages) for the duration; our own error says what is wrong."""
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def read_image(path, grayscale: bool = False) -> np.ndarray:
     """Read an image file as uint8 (h, w, 3) RGB, or (h, w) grey; `JaxStereoError` if it cannot be read."""
     path = Path(path)
@@ -35,7 +56,8 @@ def read_image(path, grayscale: bool = False) -> np.ndarray:
     if path.stat().st_size == 0:
         raise JaxStereoError(f"image {str(path)!r} is empty (0 bytes)")
     data = np.fromfile(str(path), dtype=np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR)
+    with _quiet_native_stderr():  # libpng/libjpeg print their own complaints about broken files
+        image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR)
     if image is None or image.size == 0:
         raise JaxStereoError(f"image {str(path)!r} cannot be read (corrupt, truncated or not an image)")
     if not grayscale:
@@ -67,3 +89,10 @@ def write_image(path, image: np.ndarray) -> None:
         raise JaxStereoError(f"cannot encode image for {str(path)!r}")
     with atomic_path(path) as tmp:
         Path(tmp).write_bytes(data.tobytes())
+
+
+def check_texture(image: np.ndarray, what: str) -> None:
+    """`JaxStereoError` if `image` is uniform (all black, all white...): nothing in it can be matched."""
+    if image.size == 0 or int(image.max()) == int(image.min()):
+        value = int(image.flat[0]) if image.size else 0
+        raise JaxStereoError(f"{what} is uniform (every pixel {value}): no texture to match")

@@ -1,0 +1,378 @@
+"""`jaxstereo batch`: every pair of a campaign through reconstruct, grid and damage, unattended.
+
+Each pair is one job (`run_pair`) writing into `OUTPUT/TEST/STAGE/`: `survey.npz`, `preview.png`,
+`dem.npz` (on the grid of its test's reference stage, so all DEMs of a test share one grid), `damage/`
+(report against the reference stage) and, last, `result.json`: a pair is finished when, and only
+when, its `result.json` exists with the fingerprint of its current inputs (image files, rig, settings,
+reference stage), so an interrupted batch resumes where it stopped and a changed input is redone.
+Every file is written atomically. A failing pair is logged (`batch.log`, the summary) and skipped.
+
+Jobs run in this process (compiled functions reused across pairs), in local worker processes
+(`workers > 1`, each compiles once), or on a Dask distributed cluster (`scheduler`). Reference stages
+run first, then the others.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import io
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import JaxStereoError
+from ._io import write_text_atomic
+from ._manifest import DamageSettings, Manifest, PairEntry, load_manifest
+from ._progress import Progress, format_seconds
+
+RESULT = "result.json"
+CSV_COLUMNS = ("test", "stage", "reference", "status", "seconds", "points", "submerged_fraction", "water_level_m",
+               "A_e_m2", "L_e_m", "d_e_m", "S", "S_max", "E2D", "E3D", "eroded_volume_m3", "accreted_volume_m3",
+               "damage_level", "error", "survey", "dem")
+
+
+@dataclasses.dataclass(frozen=True)
+class PairJob:
+    """Everything one worker needs for one pair (picklable): the manifest entry, the pair's output
+    folder, the rig file, reconstruction and grid settings (metres), damage settings, the reference
+    stage's output folder (None for a reference stage) and the inputs' fingerprint."""
+
+    pair: PairEntry
+    out_dir: Path
+    rig: Path
+    model: str
+    z_range: tuple[float, float] | None
+    spacing: float
+    max_gap: float
+    damage: DamageSettings | None
+    reference_dir: Path | None
+    fingerprint: str
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchResult:
+    """What a batch did: one row per pair (manifest order), counts, the output folder and files written."""
+
+    rows: list[dict]
+    processed: int
+    skipped: int
+    failed: int
+    seconds: float
+    output: Path
+    summary_csv: Path
+    figures: list[Path]
+
+
+def _file_digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _image_stamp(path: Path) -> list:
+    try:
+        st = path.stat()
+        return [str(path), st.st_size, st.st_mtime_ns]
+    except OSError:
+        return [str(path), None, None]
+
+
+def plan_jobs(manifest: Manifest, output: Path) -> list[PairJob]:
+    """One job per pair, reference stages first; fingerprints cover inputs and settings."""
+    rig_digest = _file_digest(manifest.rig)
+    settings = {"model": manifest.model, "z_range": manifest.z_range, "spacing": manifest.spacing,
+                "max_gap": manifest.max_gap, "rig": rig_digest,
+                "damage": dataclasses.asdict(manifest.damage) if manifest.damage else None}
+    jobs: dict[str, PairJob] = {}
+    for pair in manifest.pairs:
+        ref = None if pair.reference else jobs[manifest.reference_of(pair.test).key]
+        stamp = {"settings": settings, "left": _image_stamp(pair.left), "right": _image_stamp(pair.right),
+                 "water_level": pair.water_level, "reference": ref.fingerprint if ref else None}
+        fingerprint = hashlib.sha256(json.dumps(stamp, sort_keys=True, default=str).encode()).hexdigest()[:16]
+        jobs[pair.key] = PairJob(pair, output / pair.test / pair.stage, manifest.rig, manifest.model, manifest.z_range,
+                                 manifest.spacing, manifest.max_gap, manifest.damage,
+                                 ref.out_dir if ref else None, fingerprint)
+    return list(jobs.values())
+
+
+def finished_row(job: PairJob) -> dict | None:
+    """The saved row of a finished pair whose inputs have not changed, else None."""
+    path = job.out_dir / RESULT
+    if not path.is_file():
+        return None
+    try:
+        row = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if row.get("fingerprint") != job.fingerprint:
+        return None
+    if row.get("damage_waiting_for_reference") and job.reference_dir and (job.reference_dir / RESULT).is_file():
+        return None  # the reference has been done since: compute the damage now
+    return row
+
+
+_RIGS: dict[str, object] = {}
+
+
+def _load_rig_cached(path: Path):
+    from ._rig import load_rig
+
+    key = f"{path}:{path.stat().st_mtime_ns}"
+    if key not in _RIGS:
+        _RIGS.clear()
+        _RIGS[key] = load_rig(path)
+    return _RIGS[key]
+
+
+def run_pair(job: PairJob) -> dict:
+    """Process one pair; never raises: a failure comes back as a row with status "failed" and the error."""
+    import jax
+
+    started = time.perf_counter()
+    try:
+        with jax.enable_x64(True):
+            row = _process_pair(job)
+    except JaxStereoError as err:
+        row = {"status": "failed", "error": str(err)}
+    except Exception as err:  # one broken pair must not stop a campaign: record what happened
+        row = {"status": "failed", "error": f"{err.__class__.__name__}: {err}"}
+    row.update(test=job.pair.test, stage=job.pair.stage, reference=job.pair.reference,
+               seconds=round(time.perf_counter() - started, 3))
+    return row
+
+
+def _process_pair(job: PairJob) -> dict:
+    from ._damage import parse_slope
+    from ._damage_report import stretch_damage, write_damage_report
+    from ._grid import fill_holes, grid_median, load_dem, save_dem
+    from ._images import check_texture, read_image
+    from ._reconstruct import ReconstructOptions, reconstruct
+    from ._survey import plot_survey_preview, save_survey
+
+    pair = job.pair
+    _remove_stale_temporaries(job.out_dir)
+    rig = _load_rig_cached(job.rig)
+    left, right = read_image(pair.left), read_image(pair.right)
+    check_texture(left, f"left image {str(pair.left)!r}")
+    check_texture(right, f"right image {str(pair.right)!r}")
+    survey, info = reconstruct(left, right, rig, pair.water_level,
+                               ReconstructOptions(model=job.model, z_range_m=job.z_range))
+    out = job.out_dir
+    save_survey(survey, out / "survey.npz")
+    plot_survey_preview(survey, rig.image_size, out / "preview.png",
+                        f"{pair.test} stage {pair.stage}: {len(survey)} points")
+    reference_dem = None
+    if job.reference_dir is not None and (job.reference_dir / RESULT).is_file():
+        reference_dem = load_dem(job.reference_dir / "dem.npz")
+    axes = (reference_dem.x, reference_dem.y) if reference_dem is not None else (None, None)
+    dem = fill_holes(grid_median(survey.points, job.spacing, *axes), job.max_gap)
+    save_dem(dem, out / "dem.npz")
+    row = {"status": "ok", "points": len(survey), "submerged_fraction": round(info["submerged_fraction"], 4),
+           "water_level_m": survey.water_level, "survey": str(out / "survey.npz"), "dem": str(out / "dem.npz"),
+           "stage_seconds": info["seconds"]}
+    if job.damage is not None and job.reference_dir is not None:
+        if reference_dem is None:
+            row["damage_waiting_for_reference"] = True
+            row["error"] = "no damage: the reference stage has not been surveyed"
+        elif not np.any(np.isfinite(reference_dem.z) & np.isfinite(dem.z)):
+            raise JaxStereoError(f"survey of {pair.key} does not overlap its reference stage's DEM")
+        else:
+            d = job.damage
+            result = stretch_damage(reference_dem, dem, d.dn50, parse_slope(d.slope), d.swl, d.slope_origin,
+                                    d.profile_spacing)
+            write_damage_report(result, reference_dem, dem, out / "damage")
+            a = result.averaged
+            row.update(A_e_m2=a.A_e, L_e_m=a.L_e, d_e_m=a.d_e, S=a.S, S_max=result.S_max, E2D=a.E2D,
+                       E3D=result.volumes.E3D, eroded_volume_m3=result.volumes.eroded_m3,
+                       accreted_volume_m3=result.volumes.accreted_m3, damage_level=result.level)
+    row["fingerprint"] = job.fingerprint
+    write_text_atomic(out / RESULT, json.dumps({**row, "test": pair.test, "stage": pair.stage,
+                                                "reference": pair.reference}, indent=2, default=float) + "\n")
+    return row
+
+
+def _remove_stale_temporaries(folder: Path) -> None:
+    """Delete temporary files an interrupted run left in a pair's folder (`atomic_path` names them `.NAME.*`)."""
+    if folder.is_dir():
+        for path in list(folder.glob(".*")) + list(folder.glob("damage/.*")):
+            if path.is_file():
+                path.unlink(missing_ok=True)
+
+
+class _Inline:
+    """Jobs one after another in this process."""
+
+    def run(self, jobs):
+        for job in jobs:
+            yield job, run_pair(job)
+
+    def close(self):
+        pass
+
+
+class _Processes:
+    """Jobs on `workers` local processes (spawned: JAX is not fork-safe)."""
+
+    def __init__(self, workers: int):
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+
+    def run(self, jobs):
+        from concurrent.futures import as_completed
+
+        futures = {self.pool.submit(run_pair, job): job for job in jobs}
+        for future in as_completed(futures):
+            yield futures[future], future.result()
+
+    def close(self):
+        self.pool.shutdown(cancel_futures=True)
+
+
+class _Dask:
+    """Jobs on a Dask distributed cluster (the optional `dask` extra); workers must see the files."""
+
+    def __init__(self, address: str):
+        try:
+            from distributed import Client
+        except ImportError:
+            raise JaxStereoError("--scheduler needs the optional Dask extra: pip install 'jaxstereo[dask]'") from None
+        try:
+            self.client = Client(address, timeout="20s")
+        except (OSError, TimeoutError, ValueError) as err:
+            raise JaxStereoError(f"cannot reach the Dask scheduler at {address!r}: {err}") from None
+
+    def run(self, jobs):
+        from distributed import as_completed
+
+        futures = {}
+        for job in jobs:
+            futures[self.client.submit(run_pair, job, pure=False, key=f"jaxstereo-{job.pair.key}-{job.fingerprint}")] = job
+        for future in as_completed(list(futures)):
+            yield futures[future], future.result()
+
+    def close(self):
+        self.client.close()
+
+
+def _check_inputs_exist(manifest: Manifest):
+    missing = [str(p) for pair in manifest.pairs for p in (pair.left, pair.right) if not p.is_file()]
+    if missing:
+        more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+        raise JaxStereoError(f"manifest {str(manifest.path)!r} points to {len(missing)} missing image file(s): "
+                             f"{', '.join(missing[:3])}{more}")
+
+
+def run_batch(manifest_path, output=None, workers: int = 1, scheduler: str | None = None, log=print,
+              progress_stream=None) -> BatchResult:
+    """Run a campaign manifest (see `load_manifest`); returns a `BatchResult`.
+
+    Checks the manifest, the rig and that every image exists before writing anything; then runs the
+    pairs not yet finished, logs each to `OUTPUT/batch.log`, and writes `OUTPUT/summary.csv` and one
+    `OUTPUT/damage_vs_stage_TEST.png` per test (tests with damage settings).
+    """
+    from ._rig import load_rig
+
+    manifest = load_manifest(manifest_path)
+    load_rig(manifest.rig)  # a broken rig is the manifest's error, before any output
+    _check_inputs_exist(manifest)
+    if not isinstance(workers, int) or workers < 1:
+        raise JaxStereoError(f"--workers must be a positive integer, got {workers!r}")
+    out = Path(output).resolve() if output is not None else manifest.output
+    jobs = plan_jobs(manifest, out)
+    out.mkdir(parents=True, exist_ok=True)
+    log_path = out / "batch.log"
+    started = time.perf_counter()
+
+    def record(message):
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+        with open(log_path, "a") as f:
+            f.write(f"{stamp} {message}\n")
+
+    rows: dict[str, dict] = {}
+    todo = []
+    for job in jobs:
+        row = finished_row(job)
+        if row is None:
+            todo.append(job)
+        else:
+            rows[job.pair.key] = {**row, "status": row.get("status", "ok")}
+    skipped = len(jobs) - len(todo)
+    where = f"{workers} local processes" if workers > 1 and not scheduler else (
+        f"Dask scheduler {scheduler}" if scheduler else "this process")
+    log(f"batch: {len(jobs)} pairs in {len(manifest.tests())} test(s); {skipped} already done, {len(todo)} to run "
+        f"on {where}; output {out}")
+    record(f"start: {len(todo)} to run, {skipped} already done ({where})")
+    progress = Progress(len(todo), "pairs", progress_stream)
+    failed = 0
+    if todo:
+        runner = _Dask(scheduler) if scheduler else (_Processes(workers) if workers > 1 else _Inline())
+        try:
+            phases = [[j for j in todo if j.pair.reference], [j for j in todo if not j.pair.reference]]
+            for phase in phases:
+                for job, row in runner.run(phase):
+                    rows[job.pair.key] = row
+                    if row["status"] == "failed":
+                        failed += 1
+                        record(f"FAILED {job.pair.key} ({row['seconds']:.1f} s): {row['error']}")
+                    else:
+                        record(f"ok {job.pair.key}: {row['points']} points, {row['seconds']:.1f} s"
+                               + (f", S {row['S']:.2f}" if "S" in row else ""))
+                    progress.advance(f"{job.pair.key} {row['status']}")
+        finally:
+            runner.close()
+    ordered = [rows[j.pair.key] for j in jobs if j.pair.key in rows]
+    summary_csv = out / "summary.csv"
+    write_text_atomic(summary_csv, _rows_to_csv(ordered))
+    figures = _plot_tests(ordered, manifest, out) if manifest.damage is not None else []
+    seconds = time.perf_counter() - started
+    record(f"end: {len(todo) - failed} done, {failed} failed, {skipped} skipped, {seconds:.1f} s")
+    if todo:
+        log(f"batch: {len(todo) - failed} done, {failed} failed, {skipped} skipped in {format_seconds(seconds)} "
+            f"({60 * len(todo) / seconds:.1f} pairs/min)")
+    else:
+        log(f"batch: nothing to do, all {skipped} pairs already done")
+    for row in ordered:
+        if row["status"] == "failed":
+            log(f"  FAILED {row['test']}/{row['stage']}: {row['error']}")
+    log(f"summary: {summary_csv}" + "".join(f"\nfigure: {f}" for f in figures) + f"\nlog: {log_path}")
+    return BatchResult(ordered, len(todo), skipped, failed, seconds, out, summary_csv, figures)
+
+
+def _rows_to_csv(rows: list[dict]) -> str:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+    return buffer.getvalue()
+
+
+def _plot_tests(rows: list[dict], manifest: Manifest, out: Path) -> list[Path]:
+    """One figure per test: S, E2D and E3D versus stage (the reference stage at zero)."""
+    from ._plots import _pyplot, save_figure
+
+    plt = _pyplot()
+    paths = []
+    for test in manifest.tests():
+        stages = [r for r in rows if r["test"] == test]
+        if not any(r["status"] == "ok" for r in stages):
+            continue
+        names = [r["stage"] for r in stages]
+        fig, ax = plt.subplots(figsize=(6, 3.8), constrained_layout=True)
+        for key, style, label in (("S", "o-", "S (averaged profile)"), ("E2D", "o-", "E2D"), ("E3D", "s--", "E3D")):
+            values = [0.0 if r["reference"] else r.get(key, np.nan) for r in stages]
+            ax.plot(names, values, style, label=label)
+        failed = [r["stage"] for r in stages if r["status"] == "failed"]
+        ax.set_title(f"Test {test}: damage versus stage" + (f" (failed: {', '.join(failed)})" if failed else ""))
+        ax.set_xlabel("stage")
+        ax.set_ylabel("damage parameter")
+        ax.grid(alpha=0.3)
+        ax.legend()
+        path = out / f"damage_vs_stage_{test}.png"
+        save_figure(fig, path)
+        paths.append(path)
+    return paths
