@@ -27,6 +27,7 @@ from ._damage import (
     parse_slope as parse_slope,
     profile_damage as profile_damage,
 )
+from ._batch import BatchResult as BatchResult, run_batch as run_batch, run_pair as run_pair
 from ._damage_report import (
     StretchDamage as StretchDamage,
     stretch_damage as stretch_damage,
@@ -62,6 +63,7 @@ from ._incidence import (
     plot_incidence_report as plot_incidence_report,
 )
 from ._interface import Interface as Interface, tilt_normal as tilt_normal
+from ._manifest import Manifest as Manifest, PairEntry as PairEntry, load_manifest as load_manifest
 from ._matching import MatchOptions as MatchOptions
 from ._pose import Pose as Pose, so3_exp as so3_exp, so3_log as so3_log
 from ._precision import float64 as float64
@@ -98,6 +100,7 @@ from ._scenes import (
     scene_from_json as scene_from_json,
     scene_to_json as scene_to_json,
 )
+from ._synthetic_campaign import write_synthetic_campaign as write_synthetic_campaign
 from ._survey import Survey as Survey, load_survey as load_survey, save_ply as save_ply, save_survey as save_survey
 from ._triangulate import triangulate_rays as triangulate_rays
 

@@ -147,7 +147,7 @@ def _process_pair(job: PairJob) -> dict:
     from ._damage import parse_slope
     from ._damage_report import stretch_damage, write_damage_report
     from ._grid import fill_holes, grid_median, load_dem, save_dem
-    from ._images import check_texture, read_image
+    from ._images import check_pair, read_image
     from ._reconstruct import ReconstructOptions, reconstruct
     from ._survey import plot_survey_preview, save_survey
 
@@ -155,8 +155,7 @@ def _process_pair(job: PairJob) -> dict:
     _remove_stale_temporaries(job.out_dir)
     rig = _load_rig_cached(job.rig)
     left, right = read_image(pair.left), read_image(pair.right)
-    check_texture(left, f"left image {str(pair.left)!r}")
-    check_texture(right, f"right image {str(pair.right)!r}")
+    check_pair(left, right, rig.image_size, f"left image {str(pair.left)!r}", f"right image {str(pair.right)!r}")
     survey, info = reconstruct(left, right, rig, pair.water_level,
                                ReconstructOptions(model=job.model, z_range_m=job.z_range))
     out = job.out_dir
@@ -266,6 +265,26 @@ def _check_inputs_exist(manifest: Manifest):
                              f"{', '.join(missing[:3])}{more}")
 
 
+def _check_water_levels(manifest: Manifest, rig) -> None:
+    """Every pair's water level below both cameras (else a manifest error, before any output)."""
+    from ._interface import Interface, check_camera_above
+
+    for pair in manifest.pairs:
+        if pair.water_level is None:
+            interface = rig.interface
+        else:
+            base = rig.interface
+            interface = Interface(pair.water_level) if base is None else Interface(
+                pair.water_level, base.normal, float(base.n_air), float(base.n_water))
+        if interface is None:
+            continue
+        try:
+            for name, cam in (("left", rig.left), ("right", rig.right)):
+                check_camera_above(cam.center, interface, f"{name} camera")
+        except JaxStereoError as err:
+            raise JaxStereoError(f"manifest {str(manifest.path)!r}, pair {pair.key}: {err}") from None
+
+
 def run_batch(manifest_path, output=None, workers: int = 1, scheduler: str | None = None, log=print,
               progress_stream=None) -> BatchResult:
     """Run a campaign manifest (see `load_manifest`); returns a `BatchResult`.
@@ -277,8 +296,9 @@ def run_batch(manifest_path, output=None, workers: int = 1, scheduler: str | Non
     from ._rig import load_rig
 
     manifest = load_manifest(manifest_path)
-    load_rig(manifest.rig)  # a broken rig is the manifest's error, before any output
+    rig = load_rig(manifest.rig)  # a broken rig is the manifest's error, before any output
     _check_inputs_exist(manifest)
+    _check_water_levels(manifest, rig)
     if not isinstance(workers, int) or workers < 1:
         raise JaxStereoError(f"--workers must be a positive integer, got {workers!r}")
     out = Path(output).resolve() if output is not None else manifest.output

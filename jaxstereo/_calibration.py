@@ -85,7 +85,8 @@ def calibrate_camera(
     views = [i for i, d in enumerate(detections) if d is not None]
     if len(views) < MIN_VIEWS:
         raise JaxStereoError(
-            f"{name}: the board was found in only {len(views)} image(s); at least {MIN_VIEWS} are needed"
+            f"{name}: the board {board} was found in only {len(views)} of {len(detections)} image(s); at least "
+            f"{MIN_VIEWS} are needed (is the board specification right? are the images exposed?)"
         )
     dropped: list[int] = []
     for attempt in range(2):

@@ -118,7 +118,7 @@ def _cmd_calibrate(args) -> int:
 def _cmd_reconstruct(args) -> int:
     import time
 
-    from ._images import check_texture, read_image
+    from ._images import check_pair, read_image
     from ._io import write_text_atomic
     from ._matching import MatchOptions
     from ._reconstruct import ReconstructOptions, reconstruct
@@ -132,8 +132,7 @@ def _cmd_reconstruct(args) -> int:
     rig = load_rig(args.rig)
     left = read_image(args.left)
     right = read_image(args.right)
-    check_texture(left, f"left image {args.left!r}")
-    check_texture(right, f"right image {args.right!r}")
+    check_pair(left, right, rig.image_size, f"left image {args.left!r}", f"right image {args.right!r}")
     load_s = time.perf_counter() - start
     z_range = tuple(args.z_range) if args.z_range else None
     if z_range is not None and not z_range[0] < z_range[1]:
@@ -230,18 +229,13 @@ def _read_control_points(path):
 
 
 def _cmd_refine(args) -> int:
-    from ._images import check_texture, read_image
+    from ._images import check_pair, read_image
     from ._refine import find_correspondences, refine_rig
     from ._rig import load_rig, save_rig
 
     rig = load_rig(args.rig)
     left, right = read_image(args.left), read_image(args.right)
-    check_texture(left, f"left image {args.left!r}")
-    check_texture(right, f"right image {args.right!r}")
-    w, h = rig.image_size
-    for name, image in (("left", left), ("right", right)):
-        if image.shape[:2] != (h, w):
-            raise JaxStereoError(f"{name} image is {image.shape[1]}x{image.shape[0]} but the rig's cameras are {w}x{h}")
+    check_pair(left, right, rig.image_size, f"left image {args.left!r}", f"right image {args.right!r}")
     refine = tuple(v.strip() for v in args.refine.split(",") if v.strip())
     control, points = None, None
     for item in args.control or []:
@@ -273,7 +267,12 @@ def _cmd_batch(args) -> int:
     from ._batch import run_batch
 
     result = run_batch(args.manifest, args.output, workers=args.workers, scheduler=args.scheduler)
-    return 1 if result.failed else 0
+    if result.failed:
+        failures = "; ".join(f"{r['test']}/{r['stage']}: {r['error']}" for r in result.rows if r["status"] == "failed")
+        print(f"jaxstereo batch: error: {result.failed} of {len(result.rows)} pairs failed (logged in "
+              f"{result.output / 'batch.log'}): {failures}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _cmd_demo(args) -> int:

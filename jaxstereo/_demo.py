@@ -21,6 +21,7 @@ from ._detect import detect_board
 from ._flume_rig import RigSpec, flume_rig
 from ._grid import fill_holes, grid_median, save_dem
 from ._images import write_image
+from ._errors import JaxStereoError
 from ._incidence import incidence_report, plot_incidence_report
 from ._interface import Interface
 from ._io import write_text_atomic
@@ -44,6 +45,8 @@ STAGES = (("I", None), ("II", Damage(half_length_dn50=2.0, half_width_dn50=3.0, 
 def run_demo(out_dir="jaxstereo-demo", log=print) -> dict:
     """Run the demo into `out_dir`; returns the summary dict (also written as `summary.json`)."""
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise JaxStereoError(f"demo output {str(out)!r} is a file, not a folder")
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     summary: dict = {}

@@ -111,24 +111,19 @@ def save_dem(dem: DEM, path) -> None:
 
 def load_dem(path) -> DEM:
     """Read a DEM `.npz`; `JaxStereoError` if it is not one."""
-    with np.load(path, allow_pickle=False) as data:
-        if not {"x", "y", "z", "spacing"} <= set(data.files):
-            raise JaxStereoError(f"{str(path)!r} is not a DEM (needs x, y, z, spacing)")
-        return DEM(data["x"], data["y"], data["z"], float(data["spacing"]))
+    from ._io import read_npz
+
+    data = read_npz(path, "DEM")
+    if not {"x", "y", "z", "spacing"} <= set(data):
+        raise JaxStereoError(f"{str(path)!r} is not a DEM (needs x, y, z, spacing)")
+    return DEM(data["x"], data["y"], data["z"], float(data["spacing"]))
 
 
 def load_surface(path, spacing: float, x=None, y=None, max_gap_m: float = 0.0) -> DEM:
     """A DEM from a file holding a DEM or a survey (gridded by median per cell, on `x`, `y` if given)."""
-    from pathlib import Path
+    from ._io import read_npz
 
-    path = Path(path)
-    if not path.is_file():
-        raise JaxStereoError(f"{str(path)!r} does not exist")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            files = set(data.files)
-    except Exception as err:
-        raise JaxStereoError(f"{str(path)!r} cannot be read as .npz ({err.__class__.__name__})") from None
+    files = set(read_npz(path, "survey or DEM"))
     if {"x", "y", "z", "spacing"} <= files:
         dem = load_dem(path)
         if x is not None and (dem.z.shape != (len(y), len(x)) or not np.allclose(dem.x, x) or not np.allclose(dem.y, y)):

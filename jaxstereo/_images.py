@@ -96,3 +96,14 @@ def check_texture(image: np.ndarray, what: str) -> None:
     if image.size == 0 or int(image.max()) == int(image.min()):
         value = int(image.flat[0]) if image.size else 0
         raise JaxStereoError(f"{what} is uniform (every pixel {value}): no texture to match")
+
+
+def check_pair(left: np.ndarray, right: np.ndarray, image_size: tuple[int, int], left_name: str = "left image",
+               right_name: str = "right image") -> None:
+    """`JaxStereoError` unless both images are `image_size` (w, h) pixels, the rig's, and carry texture."""
+    w, h = image_size
+    for name, image in ((left_name, left), (right_name, right)):
+        if image.shape[:2] != (h, w):
+            raise JaxStereoError(f"{name} is {image.shape[1]}x{image.shape[0]} but the rig's cameras are {w}x{h}")
+    check_texture(left, left_name)
+    check_texture(right, right_name)

@@ -47,20 +47,18 @@ def save_survey(survey: Survey, path) -> None:
 
 def load_survey(path) -> Survey:
     """Read a survey `.npz`; `JaxStereoError` names the file and what is wrong with it."""
-    path = Path(path)
-    if not path.is_file():
-        raise JaxStereoError(f"survey {str(path)!r} does not exist")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            fields = {k: data[k] for k in data.files}
-    except Exception as err:  # numpy raises several types for corrupt archives
-        raise JaxStereoError(f"survey {str(path)!r} cannot be read ({err.__class__.__name__})") from None
+    from ._io import read_npz
+
+    fields = read_npz(path, "survey")
     for key in ("points", "colors", "pixels", "submerged"):
         if key not in fields:
             raise JaxStereoError(f"survey {str(path)!r} has no {key!r} array")
     points = np.asarray(fields["points"], dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise JaxStereoError(f"survey {str(path)!r}: points must have shape (N, 3), got {points.shape}")
+    bad = int(np.count_nonzero(~np.all(np.isfinite(points), axis=1)))
+    if bad:
+        raise JaxStereoError(f"survey {str(path)!r} holds {bad} point(s) with NaN or infinite coordinates")
     return Survey(points, np.asarray(fields["colors"]), np.asarray(fields["pixels"]),
                   np.asarray(fields["submerged"], dtype=bool), str(fields.get("rig", "")),
                   str(fields.get("model", "")), float(fields.get("water_level", np.nan)))

@@ -74,7 +74,7 @@ def test_calibrate_bad_input(tmp_path, capsys):
         for k in range(4):
             cv2.imwrite(str(blank / f"{side}{k}.png"), np.full((480, 640), 128, np.uint8))
     code = main(_args(tmp_path, left=str(blank / "left*.png"), right=str(blank / "right*.png")))
-    _one_line_error(capsys, code, "board was found in only 0 image(s)", tmp_path)
+    _one_line_error(capsys, code, "was found in only 0 of", tmp_path)
 
     code = main(_args(tmp_path, origin_left=str(blank / "left0.png")))
     _one_line_error(capsys, code, "no board chessboard:9x6:0.025 found in origin image", tmp_path)

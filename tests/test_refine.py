@@ -147,7 +147,7 @@ def test_refine_command(tmp_path, capsys):
     write_image(tmp_path / "small.png", np.zeros((100, 150, 3), np.uint8))
     cases = [
         (["refine", str(tmp_path / "empty.png"), *args[2:]], "is empty (0 bytes)"),
-        (["refine", str(tmp_path / "l.png"), str(tmp_path / "small.png"), *args[3:]], "right image is 150x100"),
+        (["refine", str(tmp_path / "l.png"), str(tmp_path / "small.png"), *args[3:]], "small.png' is 150x100"),
         ([*args[:6], "5.0", *args[7:]], "below the water plane"),
         ([*args, "--refine", "water,focus"], "cannot refine 'focus'"),
     ]
