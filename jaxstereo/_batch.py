@@ -152,25 +152,39 @@ def _process_pair(job: PairJob) -> dict:
     from ._survey import plot_survey_preview, save_survey
 
     pair = job.pair
+    seconds: dict[str, float] = {}
+    clock = [time.perf_counter()]
+
+    def lap(name):
+        now = time.perf_counter()
+        seconds[name] = seconds.get(name, 0.0) + now - clock[0]
+        clock[0] = now
+
     _remove_stale_temporaries(job.out_dir)
     rig = _load_rig_cached(job.rig)
     left, right = read_image(pair.left), read_image(pair.right)
     check_pair(left, right, rig.image_size, f"left image {str(pair.left)!r}", f"right image {str(pair.right)!r}")
+    lap("load (s)")
     survey, info = reconstruct(left, right, rig, pair.water_level,
                                ReconstructOptions(model=job.model, z_range_m=job.z_range))
+    clock[0] = time.perf_counter()
+    seconds.update(info["seconds"])
     out = job.out_dir
     save_survey(survey, out / "survey.npz")
+    lap("write survey (s)")
     plot_survey_preview(survey, rig.image_size, out / "preview.png",
                         f"{pair.test} stage {pair.stage}: {len(survey)} points")
+    lap("preview figure (s)")
     reference_dem = None
     if job.reference_dir is not None and (job.reference_dir / RESULT).is_file():
         reference_dem = load_dem(job.reference_dir / "dem.npz")
     axes = (reference_dem.x, reference_dem.y) if reference_dem is not None else (None, None)
     dem = fill_holes(grid_median(survey.points, job.spacing, *axes), job.max_gap)
     save_dem(dem, out / "dem.npz")
+    lap("grid (s)")
     row = {"status": "ok", "points": len(survey), "submerged_fraction": round(info["submerged_fraction"], 4),
            "water_level_m": survey.water_level, "survey": str(out / "survey.npz"), "dem": str(out / "dem.npz"),
-           "stage_seconds": info["seconds"]}
+           "stage_seconds": seconds}
     if job.damage is not None and job.reference_dir is not None:
         if reference_dem is None:
             row["damage_waiting_for_reference"] = True
@@ -181,7 +195,9 @@ def _process_pair(job: PairJob) -> dict:
             d = job.damage
             result = stretch_damage(reference_dem, dem, d.dn50, parse_slope(d.slope), d.swl, d.slope_origin,
                                     d.profile_spacing)
+            lap("damage (s)")
             write_damage_report(result, reference_dem, dem, out / "damage")
+            lap("damage report and figures (s)")
             a = result.averaged
             row.update(A_e_m2=a.A_e, L_e_m=a.L_e, d_e_m=a.d_e, S=a.S, S_max=result.S_max, E2D=a.E2D,
                        E3D=result.volumes.E3D, eroded_volume_m3=result.volumes.eroded_m3,

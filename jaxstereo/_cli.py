@@ -239,12 +239,21 @@ def _cmd_refine(args) -> int:
     refine = tuple(v.strip() for v in args.refine.split(",") if v.strip())
     control, points = None, None
     for item in args.control or []:
+        if item.endswith(".csv"):
+            points = _read_control_points(item)
+            continue
+        if control is not None:
+            raise JaxStereoError(f"--control {item!r}: give one control surface (floor or a DEM), not two")
         if item == "floor":
             control = "floor"
-        elif item.endswith(".csv"):
-            points = _read_control_points(item)
+        elif item.endswith(".npz"):
+            from ._grid import load_surface
+
+            control = load_surface(item, 0.005)
+            if not np.isfinite(control.z).any():
+                raise JaxStereoError(f"control DEM {item!r} holds no heights")
         else:
-            raise JaxStereoError(f"--control {item!r}: use 'floor' or a control-points .csv")
+            raise JaxStereoError(f"--control {item!r}: use 'floor', a DEM or survey .npz, or a control-points .csv")
     pl, pr = find_correspondences(left, right, args.max_points)
     result = refine_rig(rig, pl, pr, args.water_level_guess, refine=refine, control=control,
                         floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points)
@@ -256,7 +265,7 @@ def _cmd_refine(args) -> int:
     if "water" in refine and not result.level_determined:
         level, std = result.parameters["water level (m)"]
         print(f"  WATER LEVEL NOT DETERMINED: its standard deviation is {1e3 * std:.1f} mm; the images cannot "
-              "fix it with this control. Add control (--control floor with --floor-x, control points) or keep "
+              "fix it with this control. Add control (--control floor with --floor-x, a dry DEM, control points) or keep "
               "the gauge reading.")
     save_rig(result.rig, args.output)
     print(f"rig: {args.output}")
@@ -371,8 +380,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("right", help="right image")
     p.add_argument("--rig", required=True, help="rig JSON")
     p.add_argument("--water-level-guess", type=float, required=True, help="starting water level, m")
-    p.add_argument("--control", action="append", metavar="floor|POINTS.csv",
-                   help="control: 'floor' (points on z = 0) and/or a CSV of control points "
+    p.add_argument("--control", action="append", metavar="floor|DEM.npz|POINTS.csv",
+                   help="control: 'floor' (points on z = 0) or a dry survey of the model (DEM or survey .npz: "
+                   "the parts that did not move), and/or a CSV of control points "
                    "(u_left,v_left,u_right,v_right,x,y,z); may be repeated")
     p.add_argument("--floor-x", type=float, nargs=2, metavar=("XMIN", "XMAX"),
                    help="world x range where the floor is bare (e.g. in front of the toe)")

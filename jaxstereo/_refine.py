@@ -23,6 +23,7 @@ import optimistix as optx
 
 from ._camera import Camera
 from ._errors import JaxStereoError
+from ._grid import DEM
 from ._interface import Interface, check_camera_above, tilt_normal
 from ._precision import float64
 from ._refraction import intersect_plane, project_refracted, refract_directions
@@ -191,7 +192,7 @@ def refine_rig(
     refine=("water", "right-pose"), control: str | None = "floor", floor_z: float = 0.0,
     floor_band_m: float = 0.01, floor_sigma_m: float = 0.001, pixel_sigma: float = 0.3,
     robust_sigmas: float = 3.0, max_steps: int = 100, floor_region: tuple[float, float] | None = None,
-    control_points=None, control_sigma_m: float = 0.001,
+    control_points=None, control_sigma_m: float = 0.001, dem_sigma_m: float = 0.002,
 ) -> RefineResult:
     """Refine the water level (and optionally the interface tilt and the right camera's pose).
 
@@ -202,10 +203,13 @@ def refine_rig(
     - `level_guess`: starting water level, metres.
     - `refine`: any of "water", "tilt", "right-pose" (three rotations, and two shifts of the right
       camera's centre across the baseline: the baseline's length, the survey's scale, stays as calibrated).
-    - `control`: "floor" (correspondences near the lowest level are taken to lie on `z = floor_z`)
-      or None (no control: the level may then be undetermined, and is reported so).
+    - `control`: "floor" (correspondences near the lowest level are taken to lie on `z = floor_z`),
+      a `DEM` (a dry survey of the same model: correspondences are taken to lie on it where they agree
+      with it within 3 `dem_sigma_m` at the solution, i.e. on the parts that did not move), or None (no
+      control: the level may then be undetermined, and is reported so).
     - `floor_band_m`: how far above the lowest points a correspondence may sit to count as floor.
-    - `floor_sigma_m`, `pixel_sigma`: standard deviations weighting control against reprojection.
+    - `floor_sigma_m`, `dem_sigma_m`, `pixel_sigma`: standard deviations (m, m, px) weighting the floor or
+      DEM control against reprojection.
     - `robust_sigmas`: scale of the Cauchy loss, in standard deviations.
     - `floor_region`: (x_min, x_max) world metres where the floor is bare (e.g. in front of the toe).
     - `control_points`: `(left_pixels (k, 2), right_pixels (k, 2), xyz (k, 3))` points of known world
@@ -244,11 +248,24 @@ def refine_rig(
     in_region = np.ones(len(pl), bool)
     if floor_region is not None:
         in_region = (points0[:, 0] >= floor_region[0]) & (points0[:, 0] <= floor_region[1])
-    if control == "floor":
+    control_z = np.full(len(pl), float(floor_z))
+    surface_sigma = floor_sigma_m
+    if isinstance(control, DEM):
+        control_z = dem_heights(control, points0[:, :2])
+        mask = in_region & np.isfinite(control_z)
+        if not mask.any():
+            p_lo, p_hi = points0[:, :2].min(axis=0), points0[:, :2].max(axis=0)
+            raise JaxStereoError(
+                f"the control DEM (x {control.x[0]:.3f} to {control.x[-1]:.3f} m, y {control.y[0]:.3f} to "
+                f"{control.y[-1]:.3f} m) does not overlap the correspondences (x {p_lo[0]:.3f} to {p_hi[0]:.3f} m, "
+                f"y {p_lo[1]:.3f} to {p_hi[1]:.3f} m): is it in the same world frame?")
+        control_z = np.where(mask, control_z, 0.0)
+        surface_sigma = dem_sigma_m
+    elif control == "floor":
         lowest = np.percentile(points0[in_region, 2], 2) if in_region.any() else np.inf
         mask = in_region & (points0[:, 2] <= lowest + floor_band_m)
     elif control is not None:
-        raise JaxStereoError(f"unknown control {control!r}: use 'floor' or None")
+        raise JaxStereoError(f"unknown control {control!r}: use 'floor', a DEM or None")
     if control_points is not None:
         gcp = tuple(jnp.asarray(np.asarray(a, dtype=np.float64).reshape(-1, k))
                     for a, k in zip(control_points, (2, 2, 3)))
@@ -256,9 +273,9 @@ def refine_rig(
             raise JaxStereoError("control points: left pixels, right pixels and coordinates differ in number")
     else:
         gcp = no_gcp
-    args = (model, jnp.asarray(pl), jnp.asarray(pr), jnp.asarray(mask), jnp.full(len(pl), float(floor_z)), *gcp)
+    args = (model, jnp.asarray(pl), jnp.asarray(pr), jnp.asarray(mask), jnp.asarray(control_z), *gcp)
     n_reproj = 4 * len(pl)
-    weights = jnp.concatenate([jnp.full(n_reproj, 1.0 / pixel_sigma), jnp.full(len(pl), 1.0 / floor_sigma_m),
+    weights = jnp.concatenate([jnp.full(n_reproj, 1.0 / pixel_sigma), jnp.full(len(pl), 1.0 / surface_sigma),
                                jnp.full(3 * gcp[0].shape[0], 1.0 / control_sigma_m)])
 
     def fn(theta, a):
@@ -269,14 +286,20 @@ def refine_rig(
     solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
     sol = optx.least_squares(fn, solver, theta0, args, max_steps=max_steps, throw=False)
     theta = sol.value
-    if control == "floor":
-        # Re-select the floor with the refined geometry (within 3 sigma of it) and solve again from there.
-        right, interface = model.unpack(theta)
-        z = np.asarray(_triangulate_any(model.left, right, interface, args[1], args[2]))[:, 2]
-        mask = in_region & (np.abs(z - floor_z) <= 3 * floor_sigma_m)
-        args = (model, args[1], args[2], jnp.asarray(mask), *args[4:])
-        sol = optx.least_squares(fn, solver, theta, args, max_steps=max_steps, throw=False)
-        theta = sol.value
+    if control is not None:
+        # Re-select the control with the refined geometry (within 3 sigma of the surface) and solve again.
+        for _ in range(2 if isinstance(control, DEM) else 1):
+            right, interface = model.unpack(theta)
+            points = np.asarray(_triangulate_any(model.left, right, interface, args[1], args[2]))
+            if isinstance(control, DEM):
+                control_z = dem_heights(control, points[:, :2])
+            mask = in_region & np.isfinite(control_z) & (np.abs(points[:, 2] - control_z) <= 3 * surface_sigma)
+            if not mask.any():
+                raise JaxStereoError("no correspondence lies on the control surface at the solution: the control "
+                                     "does not fit these images (wrong DEM, floor region or world frame?)")
+            args = (model, args[1], args[2], jnp.asarray(mask), jnp.asarray(np.where(mask, control_z, 0.0)), *args[5:])
+            sol = optx.least_squares(fn, solver, theta, args, max_steps=max_steps, throw=False)
+            theta = sol.value
     raw_before = np.asarray(_residuals(theta0, args))[:n_reproj]
     raw_after = np.asarray(_residuals(theta, args))[:n_reproj]
     rms_before = float(np.sqrt(np.mean(raw_before**2) * 2))
@@ -320,6 +343,14 @@ def refine_rig(
     return RefineResult(refined, params, determined, rms_before, rms_after, int(len(pl)),
                         int(mask.sum()) + int(gcp[0].shape[0]),
                         int(sol.stats["num_steps"]), str(sol.result), time.perf_counter() - start)
+
+
+def dem_heights(dem: DEM, xy: np.ndarray) -> np.ndarray:
+    """Bilinear height (metres) of a DEM at world points `xy` (n, 2); NaN outside it or next to a hole."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    interp = RegularGridInterpolator((dem.y, dem.x), dem.z, method="linear", bounds_error=False, fill_value=np.nan)
+    return interp(np.column_stack([xy[:, 1], xy[:, 0]]))
 
 
 def refine_problem(rig: Rig, left_pixels, right_pixels, level_guess: float, refine=("water", "right-pose"),
