@@ -354,9 +354,11 @@ def dem_heights(dem: DEM, xy: np.ndarray) -> np.ndarray:
 
 
 def refine_problem(rig: Rig, left_pixels, right_pixels, level_guess: float, refine=("water", "right-pose"),
-                   floor_mask=None, floor_sigma_m: float = 0.001):
-    """The least-squares problem of `refine_rig` (for comparisons and benchmarks), with the floor
-    control given explicitly by `floor_mask` (n,) (correspondences on z = 0), or none.
+                   floor_mask=None, floor_sigma_m: float = 0.001, control_z=None):
+    """The least-squares problem of `refine_rig` (for comparisons and benchmarks), with the surface
+    control given explicitly: `floor_mask` (n,) marks the correspondences that are control terms, at
+    heights `control_z` (n,) metres (default 0: the floor), standard deviation `floor_sigma_m`; no mask,
+    no control.
 
     **Returns:** `(fn, theta0, args)` with `fn(theta, args)` the residual vector (in standard deviations,
     robust loss applied) that `refine_rig` minimises.
@@ -365,7 +367,8 @@ def refine_problem(rig: Rig, left_pixels, right_pixels, level_guess: float, refi
     pl = jnp.asarray(np.asarray(left_pixels, dtype=np.float64))
     pr = jnp.asarray(np.asarray(right_pixels, dtype=np.float64))
     mask = jnp.zeros(pl.shape[0], bool) if floor_mask is None else jnp.asarray(floor_mask)
-    args = (model, pl, pr, mask, jnp.zeros(pl.shape[0]), jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros((0, 3)))
+    heights = jnp.zeros(pl.shape[0]) if control_z is None else jnp.asarray(np.asarray(control_z, dtype=np.float64))
+    args = (model, pl, pr, mask, heights, jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros((0, 3)))
     weights = jnp.concatenate([jnp.full(4 * pl.shape[0], 1.0 / 0.3), jnp.full(pl.shape[0], 1.0 / floor_sigma_m)])
 
     def fn(theta, a):
