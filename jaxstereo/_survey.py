@@ -91,11 +91,14 @@ def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title
         vmin, vmax = np.percentile(z, [1, 99])
     else:
         vmin, vmax = 0.0, 1.0
-    grid = np.full((h, w), np.nan)
-    px = np.round(survey.pixels).astype(int)
-    ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    step = max(1, int(np.ceil(max(w, h) / 1000)))  # at most ~1000 px drawn: the figure is ~800 px wide anyway
+    gw, gh = -(-w // step), -(-h // step)
+    grid = np.full((gh, gw), np.nan)
+    px = np.floor((survey.pixels + 0.5) / step).astype(int)
+    ok = (px[:, 0] >= 0) & (px[:, 0] < gw) & (px[:, 1] >= 0) & (px[:, 1] < gh)
     grid[px[ok, 1], px[ok, 0]] = z[ok]
-    im = axes[0].imshow(grid, cmap="viridis", vmin=vmin, vmax=vmax)
+    im = axes[0].imshow(grid, cmap="viridis", vmin=vmin, vmax=vmax, extent=(-0.5, gw * step - 0.5, gh * step - 0.5, -0.5),
+                        interpolation="nearest")
     axes[0].set_title("height (m) in the left image")
     axes[0].set_xlabel("u (px)")
     axes[0].set_ylabel("v (px)")
