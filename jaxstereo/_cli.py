@@ -262,6 +262,9 @@ def _cmd_refine(args) -> int:
     for name, (value, std) in result.parameters.items():
         print(f"  {name:<34} {value:+.5f} +/- {std:.5f}")
     print(f"  reprojection RMS before / after    {result.rms_before_px:.3f} / {result.rms_after_px:.3f} px")
+    if control is not None:
+        print(f"  control surface std (from the data) {1e3 * result.surface_sigma_m:.2f} mm, "
+              f"{result.n_control - (0 if points is None else len(points[0]))} points on it")
     if "water" in refine and not result.level_determined:
         level, std = result.parameters["water level (m)"]
         print(f"  WATER LEVEL NOT DETERMINED: its standard deviation is {1e3 * std:.1f} mm; the images cannot "

@@ -161,7 +161,8 @@ class RefineResult:
     in user units (level m, tilt deg, rotation deg, translation mm); `level_determined` whether the water
     level's standard deviation is below 2 mm; `rms_before_px`, `rms_after_px` reprojection RMS of the
     inliers; `n_correspondences`, `n_control`; `steps` solver steps; `result` optimistix's result
-    message; `seconds`.
+    message; `seconds`; `surface_sigma_m` the standard deviation given to the floor or DEM control terms
+    (the larger of the one asked for and the points' own scatter about the surface), metres.
     """
 
     rig: Rig
@@ -174,6 +175,7 @@ class RefineResult:
     steps: int
     result: str
     seconds: float
+    surface_sigma_m: float
 
 
 def _check_which(refine) -> tuple[str, ...]:
@@ -275,39 +277,54 @@ def refine_rig(
         gcp = no_gcp
     args = (model, jnp.asarray(pl), jnp.asarray(pr), jnp.asarray(mask), jnp.asarray(control_z), *gcp)
     n_reproj = 4 * len(pl)
-    weights = jnp.concatenate([jnp.full(n_reproj, 1.0 / pixel_sigma), jnp.full(len(pl), 1.0 / surface_sigma),
-                               jnp.full(3 * gcp[0].shape[0], 1.0 / control_sigma_m)])
 
-    def fn(theta, a):
+    def weights_for(sigma):
+        return jnp.concatenate([jnp.full(n_reproj, 1.0 / pixel_sigma), jnp.full(len(pl), 1.0 / sigma),
+                                jnp.full(3 * gcp[0].shape[0], 1.0 / control_sigma_m)])
+
+    def fn(theta, problem):
         # Residuals in units of their standard deviations, then a Cauchy loss at `robust_sigmas`.
+        a, weights = problem
         return _robust(_residuals(theta, a) * weights, robust_sigmas)
 
     theta0 = jnp.zeros(model.size)
     solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
-    sol = optx.least_squares(fn, solver, theta0, args, max_steps=max_steps, throw=False)
+    sol = optx.least_squares(fn, solver, theta0, (args, weights_for(surface_sigma)), max_steps=max_steps, throw=False)
     theta = sol.value
+    base_sigma = surface_sigma
     if control is not None:
-        # Re-select the control with the refined geometry (within 3 sigma of the surface) and solve again.
-        for _ in range(2 if isinstance(control, DEM) else 1):
+        # Re-select the control with the refined geometry and solve again, twice. The control's standard
+        # deviation is the larger of the given one and the scatter of the points about the surface (their
+        # depth noise from the pixels): too tight a value would cut the noise distribution and bias the level.
+        for _ in range(2):
             right, interface = model.unpack(theta)
             points = np.asarray(_triangulate_any(model.left, right, interface, args[1], args[2]))
             if isinstance(control, DEM):
                 control_z = dem_heights(control, points[:, :2])
-            mask = in_region & np.isfinite(control_z) & (np.abs(points[:, 2] - control_z) <= 3 * surface_sigma)
+            d = points[:, 2] - control_z
+            candidates = in_region & np.isfinite(d)
+            if not isinstance(control, DEM):
+                candidates &= np.abs(d) <= max(floor_band_m, 3 * surface_sigma)
+            if candidates.sum() >= MIN_CORRESPONDENCES:
+                dc = d[candidates]
+                surface_sigma = max(base_sigma, 1.4826 * float(np.median(np.abs(dc - np.median(dc)))))
+            mask = candidates & (np.abs(d) <= 3 * surface_sigma)
             if not mask.any():
                 raise JaxStereoError("no correspondence lies on the control surface at the solution: the control "
                                      "does not fit these images (wrong DEM, floor region or world frame?)")
             args = (model, args[1], args[2], jnp.asarray(mask), jnp.asarray(np.where(mask, control_z, 0.0)), *args[5:])
-            sol = optx.least_squares(fn, solver, theta, args, max_steps=max_steps, throw=False)
+            sol = optx.least_squares(fn, solver, theta, (args, weights_for(surface_sigma)), max_steps=max_steps,
+                                     throw=False)
             theta = sol.value
+    problem = (args, weights_for(surface_sigma))
     raw_before = np.asarray(_residuals(theta0, args))[:n_reproj]
     raw_after = np.asarray(_residuals(theta, args))[:n_reproj]
     rms_before = float(np.sqrt(np.mean(raw_before**2) * 2))
     rms_after = float(np.sqrt(np.mean(raw_after**2) * 2))
 
     # Gauss-Newton covariance at the solution, scaled by the residual variance.
-    J = np.asarray(jax.jacfwd(fn)(theta, args))
-    r = np.asarray(fn(theta, args))
+    J = np.asarray(jax.jacfwd(fn)(theta, problem))
+    r = np.asarray(fn(theta, problem))
     dof = max(1, r.size - theta.size)
     sigma2 = float(r @ r) / dof
     try:
@@ -338,11 +355,12 @@ def refine_rig(
     calibration = dict(rig.calibration)
     calibration["refine"] = {"parameters": {k_: list(v) for k_, v in params.items()},
                              "level_determined": determined, "rms_before_px": rms_before, "rms_after_px": rms_after,
-                             "correspondences": int(len(pl)), "control_points": int(mask.sum())}
+                             "correspondences": int(len(pl)), "control_points": int(mask.sum()),
+                             "surface_sigma_m": surface_sigma}
     refined = Rig(rig.left, right, interface, calibration)
     return RefineResult(refined, params, determined, rms_before, rms_after, int(len(pl)),
                         int(mask.sum()) + int(gcp[0].shape[0]),
-                        int(sol.stats["num_steps"]), str(sol.result), time.perf_counter() - start)
+                        int(sol.stats["num_steps"]), str(sol.result), time.perf_counter() - start, surface_sigma)
 
 
 def dem_heights(dem: DEM, xy: np.ndarray) -> np.ndarray:
