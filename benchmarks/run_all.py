@@ -60,7 +60,7 @@ def _child_single(manifest: str, repeat: int) -> dict:
     started = time.perf_counter()
     import jax
 
-    from jaxstereo._batch import plan_jobs, run_pair
+    from jaxstereo._batch_job import plan_jobs, run_pair
     from jaxstereo._manifest import load_manifest
 
     imported = time.perf_counter() - started

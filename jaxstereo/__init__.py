@@ -27,7 +27,8 @@ from ._damage import (
     parse_slope as parse_slope,
     profile_damage as profile_damage,
 )
-from ._batch import BatchResult as BatchResult, run_batch as run_batch, run_pair as run_pair
+from ._batch import BatchResult as BatchResult, run_batch as run_batch
+from ._batch_job import run_pair as run_pair
 from ._damage_report import (
     StretchDamage as StretchDamage,
     stretch_damage as stretch_damage,

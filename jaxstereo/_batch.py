@@ -1,56 +1,30 @@
 """`jaxstereo batch`: every pair of a campaign through reconstruct, grid and damage, unattended.
 
-Each pair is one job (`run_pair`) writing into `OUTPUT/TEST/STAGE/`: `survey.npz`, `preview.png`,
-`dem.npz` (on the grid of its test's reference stage, so all DEMs of a test share one grid), `damage/`
-(report against the reference stage) and, last, `result.json`: a pair is finished when, and only
-when, its `result.json` exists with the fingerprint of its current inputs (image files, rig, settings,
-reference stage), so an interrupted batch resumes where it stopped and a changed input is redone.
-Every file is written atomically. A failing pair is logged (`batch.log`, the summary) and skipped.
-
-Jobs run in this process (compiled functions reused across pairs), in local worker processes
-(`workers > 1`, each compiles once), or on a Dask distributed cluster (`scheduler`). Reference stages
-run first, then the others.
+Pairs run as jobs (`run_pair`, see `_batch_job`) in this process (compiled functions reused across
+pairs), in local worker processes (`workers > 1`, each compiles once), or on a Dask distributed cluster
+(`scheduler`); reference stages first, then the others. Finished pairs are skipped (resumable); a
+failing pair is logged (`batch.log`, `summary.csv`) and skipped. Every file is written atomically.
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
-import hashlib
 import io
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ._batch_job import finished_row, plan_jobs, run_pair
 from ._errors import JaxStereoError
 from ._io import write_text_atomic
-from ._manifest import DamageSettings, Manifest, PairEntry, load_manifest
+from ._manifest import Manifest, load_manifest
 from ._progress import Progress, format_seconds
 
-RESULT = "result.json"
 CSV_COLUMNS = ("test", "stage", "reference", "status", "seconds", "points", "submerged_fraction", "water_level_m",
                "A_e_m2", "L_e_m", "d_e_m", "S", "S_max", "E2D", "E3D", "eroded_volume_m3", "accreted_volume_m3",
                "damage_level", "error", "survey", "dem")
-
-
-@dataclasses.dataclass(frozen=True)
-class PairJob:
-    """Everything one worker needs for one pair (picklable): the manifest entry, the pair's output
-    folder, the rig file, reconstruction and grid settings (metres), damage settings, the reference
-    stage's output folder (None for a reference stage) and the inputs' fingerprint."""
-
-    pair: PairEntry
-    out_dir: Path
-    rig: Path
-    model: str
-    z_range: tuple[float, float] | None
-    spacing: float
-    max_gap: float
-    damage: DamageSettings | None
-    reference_dir: Path | None
-    fingerprint: str
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,153 +41,13 @@ class BatchResult:
     figures: list[Path]
 
 
-def _file_digest(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def _image_stamp(path: Path) -> list:
+def _result_or_failure(future, job) -> dict:
+    """A job's row; a worker that died (killed, out of memory) becomes a failed row, not a crash."""
     try:
-        st = path.stat()
-        return [str(path), st.st_size, st.st_mtime_ns]
-    except OSError:
-        return [str(path), None, None]
-
-
-def plan_jobs(manifest: Manifest, output: Path) -> list[PairJob]:
-    """One job per pair, reference stages first; fingerprints cover inputs and settings."""
-    rig_digest = _file_digest(manifest.rig)
-    settings = {"model": manifest.model, "z_range": manifest.z_range, "spacing": manifest.spacing,
-                "max_gap": manifest.max_gap, "rig": rig_digest,
-                "damage": dataclasses.asdict(manifest.damage) if manifest.damage else None}
-    jobs: dict[str, PairJob] = {}
-    for pair in manifest.pairs:
-        ref = None if pair.reference else jobs[manifest.reference_of(pair.test).key]
-        stamp = {"settings": settings, "left": _image_stamp(pair.left), "right": _image_stamp(pair.right),
-                 "water_level": pair.water_level, "reference": ref.fingerprint if ref else None}
-        fingerprint = hashlib.sha256(json.dumps(stamp, sort_keys=True, default=str).encode()).hexdigest()[:16]
-        jobs[pair.key] = PairJob(pair, output / pair.test / pair.stage, manifest.rig, manifest.model, manifest.z_range,
-                                 manifest.spacing, manifest.max_gap, manifest.damage,
-                                 ref.out_dir if ref else None, fingerprint)
-    return list(jobs.values())
-
-
-def finished_row(job: PairJob) -> dict | None:
-    """The saved row of a finished pair whose inputs have not changed, else None."""
-    path = job.out_dir / RESULT
-    if not path.is_file():
-        return None
-    try:
-        row = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    if row.get("fingerprint") != job.fingerprint:
-        return None
-    if row.get("damage_waiting_for_reference") and job.reference_dir and (job.reference_dir / RESULT).is_file():
-        return None  # the reference has been done since: compute the damage now
-    return row
-
-
-_RIGS: dict[str, object] = {}
-
-
-def _load_rig_cached(path: Path):
-    from ._rig import load_rig
-
-    key = f"{path}:{path.stat().st_mtime_ns}"
-    if key not in _RIGS:
-        _RIGS.clear()
-        _RIGS[key] = load_rig(path)
-    return _RIGS[key]
-
-
-def run_pair(job: PairJob) -> dict:
-    """Process one pair; never raises: a failure comes back as a row with status "failed" and the error."""
-    import jax
-
-    started = time.perf_counter()
-    try:
-        with jax.enable_x64(True):
-            row = _process_pair(job)
-    except JaxStereoError as err:
-        row = {"status": "failed", "error": str(err)}
-    except Exception as err:  # one broken pair must not stop a campaign: record what happened
-        row = {"status": "failed", "error": f"{err.__class__.__name__}: {err}"}
-    row.update(test=job.pair.test, stage=job.pair.stage, reference=job.pair.reference,
-               seconds=round(time.perf_counter() - started, 3))
-    return row
-
-
-def _process_pair(job: PairJob) -> dict:
-    from ._damage import parse_slope
-    from ._damage_report import stretch_damage, write_damage_report
-    from ._grid import fill_holes, grid_median, load_dem, save_dem
-    from ._images import check_pair, read_image
-    from ._reconstruct import ReconstructOptions, reconstruct
-    from ._survey import plot_survey_preview, save_survey
-
-    pair = job.pair
-    seconds: dict[str, float] = {}
-    clock = [time.perf_counter()]
-
-    def lap(name):
-        now = time.perf_counter()
-        seconds[name] = seconds.get(name, 0.0) + now - clock[0]
-        clock[0] = now
-
-    _remove_stale_temporaries(job.out_dir)
-    rig = _load_rig_cached(job.rig)
-    left, right = read_image(pair.left), read_image(pair.right)
-    check_pair(left, right, rig.image_size, f"left image {str(pair.left)!r}", f"right image {str(pair.right)!r}")
-    lap("load (s)")
-    survey, info = reconstruct(left, right, rig, pair.water_level,
-                               ReconstructOptions(model=job.model, z_range_m=job.z_range))
-    clock[0] = time.perf_counter()
-    seconds.update(info["seconds"])
-    out = job.out_dir
-    save_survey(survey, out / "survey.npz")
-    lap("write survey (s)")
-    plot_survey_preview(survey, rig.image_size, out / "preview.png",
-                        f"{pair.test} stage {pair.stage}: {len(survey)} points")
-    lap("preview figure (s)")
-    reference_dem = None
-    if job.reference_dir is not None and (job.reference_dir / RESULT).is_file():
-        reference_dem = load_dem(job.reference_dir / "dem.npz")
-    axes = (reference_dem.x, reference_dem.y) if reference_dem is not None else (None, None)
-    dem = fill_holes(grid_median(survey.points, job.spacing, *axes), job.max_gap)
-    save_dem(dem, out / "dem.npz")
-    lap("grid (s)")
-    row = {"status": "ok", "points": len(survey), "submerged_fraction": round(info["submerged_fraction"], 4),
-           "water_level_m": survey.water_level, "survey": str(out / "survey.npz"), "dem": str(out / "dem.npz"),
-           "stage_seconds": seconds}
-    if job.damage is not None and job.reference_dir is not None:
-        if reference_dem is None:
-            row["damage_waiting_for_reference"] = True
-            row["error"] = "no damage: the reference stage has not been surveyed"
-        elif not np.any(np.isfinite(reference_dem.z) & np.isfinite(dem.z)):
-            raise JaxStereoError(f"survey of {pair.key} does not overlap its reference stage's DEM")
-        else:
-            d = job.damage
-            result = stretch_damage(reference_dem, dem, d.dn50, parse_slope(d.slope), d.swl, d.slope_origin,
-                                    d.profile_spacing)
-            lap("damage (s)")
-            write_damage_report(result, reference_dem, dem, out / "damage")
-            lap("damage report and figures (s)")
-            a = result.averaged
-            row.update(A_e_m2=a.A_e, L_e_m=a.L_e, d_e_m=a.d_e, S=a.S, S_max=result.S_max, E2D=a.E2D,
-                       E3D=result.volumes.E3D, eroded_volume_m3=result.volumes.eroded_m3,
-                       accreted_volume_m3=result.volumes.accreted_m3, damage_level=result.level)
-    row["fingerprint"] = job.fingerprint
-    write_text_atomic(out / RESULT, json.dumps({**row, "test": pair.test, "stage": pair.stage,
-                                                "reference": pair.reference}, indent=2, default=float) + "\n")
-    return row
-
-
-def _remove_stale_temporaries(folder: Path) -> None:
-    """Delete temporary files an interrupted run left in a pair's folder (`atomic_path` names them `.NAME.*`)."""
-    if folder.is_dir():
-        for path in list(folder.glob(".*")) + list(folder.glob("damage/.*")):
-            if path.is_file():
-                path.unlink(missing_ok=True)
+        return future.result()
+    except Exception as err:
+        return {"status": "failed", "error": f"the worker running it died ({err.__class__.__name__}: {err})",
+                "test": job.pair.test, "stage": job.pair.stage, "reference": job.pair.reference, "seconds": 0.0}
 
 
 class _Inline:
@@ -241,7 +75,7 @@ class _Processes:
 
         futures = {self.pool.submit(run_pair, job): job for job in jobs}
         for future in as_completed(futures):
-            yield futures[future], future.result()
+            yield futures[future], _result_or_failure(future, futures[future])
 
     def close(self):
         self.pool.shutdown(cancel_futures=True)
@@ -267,7 +101,7 @@ class _Dask:
         for job in jobs:
             futures[self.client.submit(run_pair, job, pure=False, key=f"jaxstereo-{job.pair.key}-{job.fingerprint}")] = job
         for future in as_completed(list(futures)):
-            yield futures[future], future.result()
+            yield futures[future], _result_or_failure(future, futures[future])
 
     def close(self):
         self.client.close()
