@@ -6,6 +6,7 @@ import contextlib
 import glob as _glob
 import os
 import sys
+import threading
 from pathlib import Path
 
 import cv2
@@ -30,22 +31,29 @@ def expand_images(pattern_or_paths, what: str = "images") -> list[Path]:
     return paths
 
 
+_STDERR_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def _quiet_native_stderr():
-    """Silence file descriptor 2 (C libraries' messages) for the duration; our own error says what is wrong."""
-    sys.stderr.flush()
-    try:
-        saved = os.dup(2)
-    except OSError:
-        yield
-        return
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
+    """Silence file descriptor 2 (C libraries' messages) for the duration; our own error says what is wrong.
+
+    File descriptors are per process: the lock keeps threads (a threaded Dask worker) from interleaving
+    the swap and leaving stderr pointed at /dev/null."""
+    with _STDERR_LOCK:
+        sys.stderr.flush()
+        try:
+            saved = os.dup(2)
+        except OSError:
             yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+            return
+        try:
+            with open(os.devnull, "wb") as null:
+                os.dup2(null.fileno(), 2)
+                yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
 
 
 def read_image(path, grayscale: bool = False) -> np.ndarray:

@@ -207,8 +207,9 @@ def refine_rig(
       camera's centre across the baseline: the baseline's length, the survey's scale, stays as calibrated).
     - `control`: "floor" (correspondences near the lowest level are taken to lie on `z = floor_z`),
       a `DEM` (a dry survey of the same model: correspondences are taken to lie on it where they agree
-      with it within 3 `dem_sigma_m` at the solution, i.e. on the parts that did not move), or None (no
-      control: the level may then be undetermined, and is reported so).
+      with it within 3 sigma at the solution, i.e. on the parts that did not move), or None (no control:
+      the level may then be undetermined, and is reported so). Sigma is the larger of `floor_sigma_m`
+      (floor) or `dem_sigma_m` (DEM) and the points' own robust scatter about the surface.
     - `floor_band_m`: how far above the lowest points a correspondence may sit to count as floor.
     - `floor_sigma_m`, `dem_sigma_m`, `pixel_sigma`: standard deviations (m, m, px) weighting the floor or
       DEM control against reprojection.
