@@ -137,7 +137,7 @@ def _check_water_levels(manifest: Manifest, rig) -> None:
 
 def run_batch(manifest_path, output=None, workers: int = 1, scheduler: str | None = None, log=print,
               progress_stream=None) -> BatchResult:
-    """Run a campaign manifest (see `load_manifest`); returns a `BatchResult`.
+    """Run a campaign manifest (a TOML path, see `load_manifest`, or a `Manifest`); returns a `BatchResult`.
 
     Checks the manifest, the rig and that every image exists before writing anything; then runs the
     pairs not yet finished, logs each to `OUTPUT/batch.log`, and writes `OUTPUT/summary.csv` and one
@@ -145,7 +145,7 @@ def run_batch(manifest_path, output=None, workers: int = 1, scheduler: str | Non
     """
     from ._rig import load_rig
 
-    manifest = load_manifest(manifest_path)
+    manifest = manifest_path if isinstance(manifest_path, Manifest) else load_manifest(manifest_path)
     rig = load_rig(manifest.rig)  # a broken rig is the manifest's error, before any output
     _check_inputs_exist(manifest)
     _check_water_levels(manifest, rig)

@@ -278,13 +278,40 @@ def _cmd_refine(args) -> int:
 def _cmd_batch(args) -> int:
     from ._batch import run_batch
 
-    result = run_batch(args.manifest, args.output, workers=args.workers, scheduler=args.scheduler)
+    campaign = args.manifest
+    folder_options = {"--rig": args.rig, "--water-level": args.water_level, "--dn50": args.dn50,
+                      "--slope": args.slope, "--swl": args.swl}
+    if Path(campaign).is_dir():
+        campaign = _campaign_from_folder(Path(campaign), args)
+    elif any(v is not None for v in folder_options.values()):
+        given = ", ".join(k for k, v in folder_options.items() if v is not None)
+        raise JaxStereoError(f"{given}: only for a folder of pairs; a manifest holds its own settings")
+    result = run_batch(campaign, args.output, workers=args.workers, scheduler=args.scheduler)
     if result.failed:
         failures = "; ".join(f"{r['test']}/{r['stage']}: {r['error']}" for r in result.rows if r["status"] == "failed")
         print(f"jaxstereo batch: error: {result.failed} of {len(result.rows)} pairs failed (logged in "
               f"{result.output / 'batch.log'}): {failures}", file=sys.stderr)
         return 1
     return 0
+
+
+def _campaign_from_folder(folder: Path, args):
+    """A campaign from a folder of TEST_STAGE_L / TEST_STAGE_R images and the command's options."""
+    from ._manifest import manifest_from_dict
+
+    if args.rig is None:
+        raise JaxStereoError(f"{str(folder)!r} is a folder of pairs: give --rig (and --water-level, and for damage "
+                             "--dn50, --slope, --swl), or a manifest")
+    data = {"rig": str(Path(args.rig).resolve()), "pairs": str(folder.resolve())}
+    if args.water_level is not None:
+        data["water_level"] = args.water_level
+    damage = {"dn50": args.dn50, "slope": args.slope, "swl": args.swl}
+    if any(v is not None for v in damage.values()):
+        missing = [f"--{k}" for k, v in damage.items() if v is None]
+        if missing:
+            raise JaxStereoError(f"damage needs --dn50, --slope and --swl together; missing {', '.join(missing)}")
+        data["damage"] = damage
+    return manifest_from_dict(data, folder, folder.resolve().parent)
 
 
 def _cmd_demo(args) -> int:
@@ -313,7 +340,13 @@ def build_parser() -> argparse.ArgumentParser:
         "against its test's reference stage. Finished pairs are skipped (resumable), a failing pair is logged and "
         "skipped (exit status 1 at the end), and summary.csv plus a damage-versus-stage figure per test are "
         "written. The manifest format is documented in the README.")
-    p.add_argument("manifest", help="campaign manifest, TOML")
+    p.add_argument("manifest", metavar="MANIFEST|FOLDER",
+                   help="campaign manifest (TOML), or a folder of TEST_STAGE_L.png / TEST_STAGE_R.png pairs")
+    p.add_argument("--rig", help="rig JSON (folder of pairs only)")
+    p.add_argument("--water-level", type=float, help="water level, m (folder of pairs only)")
+    p.add_argument("--dn50", type=float, help="armour Dn50, m, for damage (folder of pairs only)")
+    p.add_argument("--slope", help="design slope, e.g. 1:2, for damage (folder of pairs only)")
+    p.add_argument("--swl", type=float, help="still water level, m, for damage (folder of pairs only)")
     p.add_argument("-o", "--output", help="output folder (default: the manifest's output, or MANIFEST-out)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: this process)")
     p.add_argument("--scheduler", metavar="ADDRESS",

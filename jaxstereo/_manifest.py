@@ -102,7 +102,7 @@ class Manifest:
 
 
 def _fail(path: Path, message: str):
-    raise JaxStereoError(f"manifest {str(path)!r}: {message}")
+    raise JaxStereoError(f"{'folder' if path.is_dir() else 'manifest'} {str(path)!r}: {message}")
 
 
 def _number(path, table: dict, key: str, where: str, default=None, positive=False):
@@ -128,8 +128,22 @@ def _name(path, table: dict, key: str, where: str) -> str:
     return text
 
 
+_ROMAN = re.compile(r"M{0,3}(CM|CD|D?C{0,3})(XC|XL|L?X{0,3})(IX|IV|V?I{0,3})")
+
+
+def _roman_value(text: str) -> int:
+    values = {"I": 1, "V": 5, "X": 10, "L": 50, "C": 100, "D": 500, "M": 1000}
+    total = 0
+    for a, b in zip(text, text[1:] + " "):
+        total += -values[a] if values.get(b, 0) > values[a] else values[a]
+    return total
+
+
 def _natural_key(text: str):
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text)]
+    """Sort key: Roman numerals by value (stage IX after VIII), then numbers inside names by value."""
+    if text and _ROMAN.fullmatch(text):
+        return (0, _roman_value(text), [])
+    return (1, 0, [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", text)])
 
 
 def _pairs_from_folder(path: Path, folder: Path, stage_order) -> list[dict]:
@@ -167,7 +181,13 @@ def load_manifest(path) -> Manifest:
         data = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
         _fail(path, f"not valid TOML ({err})")
-    base = path.parent
+    return manifest_from_dict(data, path, path.parent)
+
+
+def manifest_from_dict(data: dict, path: Path, base: Path) -> Manifest:
+    """Check a campaign given as the manifest's key-value pairs (`data`); `path` names it in errors,
+    `base` is the folder that relative paths start from."""
+    path, base = Path(path), Path(base)
     unknown = set(data) - _TOP_KEYS
     if unknown:
         _fail(path, f"unknown key(s) {', '.join(sorted(unknown))}; known: {', '.join(sorted(_TOP_KEYS))}")

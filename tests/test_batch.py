@@ -140,3 +140,28 @@ def test_workers_and_dask_cluster_give_the_same_results(campaign, tmp_path):
             assert abs(a["S"] - b["S"]) <= 1e-9 * max(1.0, a["S"])
             assert abs(a["S"] - float(on_dask[(a["test"], a["stage"])]["S"])) <= 1e-5 * max(1.0, a["S"])
     assert all(r["status"] == "ok" for r in on_dask.values())
+
+
+def test_folder_of_pairs_named_by_convention(campaign, tmp_path, capsys):
+    root, _, specs = campaign
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    for path in (root / "pairs").glob("T01_*.png"):
+        shutil.copyfile(path, folder / path.name)
+    out = tmp_path / "out"
+    damage = ["--dn50", "0.036", "--slope", "1:2", "--swl", str(SWL)]
+    assert main(["batch", str(folder), "--rig", str(root / "rig.json"), "--water-level", str(SWL), *damage,
+                 "-o", str(out)]) == 0
+    rows = _rows(out / "summary.csv")
+    assert list(rows) == [("T01", "I"), ("T01", "II"), ("T01", "III")]
+    truth = _truth_damage(specs, load_dem(out / "T01" / "I" / "dem.npz"))
+    for stage, t in zip(("II", "III"), truth):  # design slope fitted near the SWL here, not given
+        assert abs(float(rows[("T01", stage)]["S"]) - t.averaged.S) <= 0.10 * t.averaged.S
+    capsys.readouterr()
+    assert main(["batch", str(folder), "-o", str(tmp_path / "o2")]) == 2
+    assert "give --rig" in capsys.readouterr().err
+    assert main(["batch", str(folder), "--rig", str(root / "rig.json"), "--dn50", "0.036", "-o", str(tmp_path / "o3")]) == 2
+    assert "missing --slope, --swl" in capsys.readouterr().err
+    assert main(["batch", str(root / "campaign.toml"), "--rig", str(root / "rig.json"), "-o", str(tmp_path / "o4")]) == 2
+    assert "only for a folder of pairs" in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in ("o2", "o3", "o4"))
