@@ -113,7 +113,10 @@ def load_dem(path) -> DEM:
     """Read a DEM `.npz`; `JaxStereoError` if it is not one."""
     from ._io import read_npz
 
-    data = read_npz(path, "DEM")
+    return _dem_from_fields(read_npz(path, "DEM"), path)
+
+
+def _dem_from_fields(data: dict, path) -> DEM:
     if not {"x", "y", "z", "spacing"} <= set(data):
         raise JaxStereoError(f"{str(path)!r} is not a DEM (needs x, y, z, spacing)")
     return DEM(data["x"], data["y"], data["z"], float(data["spacing"]))
@@ -123,16 +126,16 @@ def load_surface(path, spacing: float, x=None, y=None, max_gap_m: float = 0.0) -
     """A DEM from a file holding a DEM or a survey (gridded by median per cell, on `x`, `y` if given)."""
     from ._io import read_npz
 
-    files = set(read_npz(path, "survey or DEM"))
-    if {"x", "y", "z", "spacing"} <= files:
-        dem = load_dem(path)
+    fields = read_npz(path, "survey or DEM")  # read once, whichever it holds
+    if {"x", "y", "z", "spacing"} <= set(fields):
+        dem = _dem_from_fields(fields, path)
         if x is not None and (dem.z.shape != (len(y), len(x)) or not np.allclose(dem.x, x) or not np.allclose(dem.y, y)):
             dem = _resample(dem, x, y)
         return dem
-    if "points" in files:
-        from ._survey import load_survey
+    if "points" in fields:
+        from ._survey import survey_from_fields
 
-        survey = load_survey(path)
+        survey = survey_from_fields(fields, path)
         if len(survey) == 0:
             raise JaxStereoError(f"survey {str(path)!r} holds no points")
         return fill_holes(grid_median(survey.points, spacing, x, y), max_gap_m)

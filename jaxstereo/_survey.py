@@ -49,7 +49,11 @@ def load_survey(path) -> Survey:
     """Read a survey `.npz`; `JaxStereoError` names the file and what is wrong with it."""
     from ._io import read_npz
 
-    fields = read_npz(path, "survey")
+    return survey_from_fields(read_npz(path, "survey"), path)
+
+
+def survey_from_fields(fields: dict, path) -> Survey:
+    """A `Survey` from the arrays of a survey `.npz` (already read); `path` names it in errors."""
     for key in ("points", "colors", "pixels", "submerged"):
         if key not in fields:
             raise JaxStereoError(f"survey {str(path)!r} has no {key!r} array")
