@@ -92,7 +92,8 @@ def _bare_sgbm(m, repeat: int) -> float:
     from jaxstereo._images import read_image
     from jaxstereo._interface import Interface
     from jaxstereo._matching import MatchOptions, disparity_search_range, sgbm_disparity
-    from jaxstereo._reconstruct import _disparity_range, _grey
+    from jaxstereo._epipolar import disparity_bounds
+    from jaxstereo._reconstruct import _grey
     from jaxstereo._rectify import rectification_maps, rectify, remap
     from jaxstereo._rig import load_rig
 
@@ -103,7 +104,8 @@ def _bare_sgbm(m, repeat: int) -> float:
         maps = [rectification_maps(rect, cam, s) for s, cam in enumerate((rig.left, rig.right))]
         a = _grey(remap(read_image(pair.left), maps[0]))
         b = _grey(remap(read_image(pair.right), maps[1]))
-        lo, num = disparity_search_range(*_disparity_range(rect, *(m.z_range or (-0.05, 0.45))), MatchOptions().margin_px)
+        bounds = disparity_bounds(rect, rig.left, rig.right, Interface(pair.water_level), *(m.z_range or (-0.05, 0.45)))
+        lo, num = disparity_search_range(*bounds, MatchOptions().margin_px)
     times = []
     for _ in range(repeat):
         start = time.perf_counter()

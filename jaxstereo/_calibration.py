@@ -47,7 +47,9 @@ class StereoCalibration:
 
     **Fields:** `left`, `right` (`CameraCalibration`); `R` (3, 3); `T` (3,) metres; `rms_px` stereo RMS;
     `pair_rms_px` (n_pairs,) per pair used; `pairs` indices of the pairs used; `missing` indices of the
-    pairs where the board was not found in one or both images.
+    pairs where the board was not found in one or both images; `origin_rvec`, `origin_tvec` the pose
+    (board -> left camera, Rodrigues vector and metres) of the origin board when it was part of the
+    joint adjustment, else None; `distortion_model` the distortion terms estimated.
     """
 
     left: CameraCalibration
@@ -59,6 +61,9 @@ class StereoCalibration:
     pairs: list[int]
     missing: list[int]
     image_size: tuple[int, int]
+    origin_rvec: np.ndarray | None = None
+    origin_tvec: np.ndarray | None = None
+    distortion_model: str = "k1,k2"
 
     @property
     def baseline_m(self) -> float:
@@ -73,14 +78,20 @@ def _view_errors(board, detections, K, dist, rvecs, tvecs):
     return np.asarray(errs)
 
 
+SQUARE_PIXELS = cv2.CALIB_FIX_ASPECT_RATIO
+RADIAL_K1_K2 = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
+SIGNIFICANCE = 0.01  # F-test level at which the fuller distortion model (k3, p1, p2) is taken
+
+
 def calibrate_camera(
     detections: list[Detection | None], board: BoardSpec, image_size: tuple[int, int], drop_outliers: bool = True,
-    outlier_factor: float = 3.0, name: str = "camera",
+    outlier_factor: float = 3.0, name: str = "camera", flags: int = SQUARE_PIXELS | RADIAL_K1_K2,
 ) -> CameraCalibration:
     """Intrinsics from board detections (None entries are views without the board).
 
     Views whose RMS exceeds `outlier_factor` times the median (and 0.3 px) are dropped once and the
-    calibration repeated, when `drop_outliers`.
+    calibration repeated, when `drop_outliers`. `flags` are OpenCV's calibration flags (default:
+    square pixels, radial k1 and k2 only).
     """
     views = [i for i, d in enumerate(detections) if d is not None]
     if len(views) < MIN_VIEWS:
@@ -92,7 +103,8 @@ def calibrate_camera(
     for attempt in range(2):
         obj = [board.corners[detections[i].ids].astype(np.float32) for i in views]
         img = [detections[i].pixels.astype(np.float32) for i in views]
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, image_size, None, None)
+        K0 = np.array([[1.0, 0.0, (image_size[0] - 1) / 2], [0.0, 1.0, (image_size[1] - 1) / 2], [0.0, 0.0, 1.0]])
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, image_size, K0, None, flags=flags)
         errs = _view_errors(board, [detections[i] for i in views], K, dist, rvecs, tvecs)
         if not drop_outliers or attempt == 1:
             break
@@ -107,47 +119,86 @@ def calibrate_camera(
     return CameraCalibration(K, dist.ravel()[:5].copy(), float(rms), errs, views, dropped)
 
 
+def _fuller_distortion_needed(detections, board, image_size, drop_outliers, name) -> bool:
+    """Whether k3, p1 and p2 reduce a camera's residuals significantly (F-test at `SIGNIFICANCE`)."""
+    from scipy.stats import f as f_dist
+
+    simple = calibrate_camera(detections, board, image_size, drop_outliers, name=name)
+    full = calibrate_camera(detections, board, image_size, drop_outliers, name=name, flags=SQUARE_PIXELS)
+    if simple.views != full.views:
+        return False
+    n = 2 * sum(len(detections[i].ids) for i in full.views)
+    p_full = 4 + 5 + 6 * len(full.views)
+    ss_simple, ss_full = n * simple.rms_px**2, n * full.rms_px**2
+    if ss_full <= 0 or n <= p_full:
+        return False
+    stat = ((ss_simple - ss_full) / 3) / (ss_full / (n - p_full))
+    return bool(f_dist.sf(stat, 3, n - p_full) < SIGNIFICANCE)
+
+
 def calibrate_stereo(
     left_detections: list[Detection | None], right_detections: list[Detection | None], board: BoardSpec,
-    image_size: tuple[int, int], drop_outliers: bool = True,
+    image_size: tuple[int, int], drop_outliers: bool = True, origin: tuple[Detection, Detection] | None = None,
 ) -> StereoCalibration:
-    """Intrinsics of both cameras, then their relative pose from the pairs where both saw the board."""
+    """Intrinsics of both cameras, then one joint adjustment of both cameras' intrinsics and their relative pose.
+
+    Pixels are square; the distortion model is radial k1, k2, with k3, p1, p2 added when they reduce
+    either camera's residuals significantly (F-test). `origin`, the (left, right) detections of the board
+    lying on z = 0, joins the joint adjustment as one more pair: its pose then comes out of the same fit
+    as the intrinsics and the stereo pose (`origin_rvec`, `origin_tvec`), for `world_frame_rig`.
+    """
     if len(left_detections) != len(right_detections):
         raise JaxStereoError(
             f"{len(left_detections)} left images but {len(right_detections)} right images: pairs must match"
         )
-    left = calibrate_camera(left_detections, board, image_size, drop_outliers, name="left camera")
-    right = calibrate_camera(right_detections, board, image_size, drop_outliers, name="right camera")
+    fuller = any(_fuller_distortion_needed(dets, board, image_size, drop_outliers, name)
+                 for dets, name in ((left_detections, "left camera"), (right_detections, "right camera")))
+    flags = SQUARE_PIXELS | (0 if fuller else RADIAL_K1_K2)
+    left = calibrate_camera(left_detections, board, image_size, drop_outliers, name="left camera", flags=flags)
+    right = calibrate_camera(right_detections, board, image_size, drop_outliers, name="right camera", flags=flags)
     pairs, missing, obj, img_l, img_r = [], [], [], [], []
     for i, (dl, dr) in enumerate(zip(left_detections, right_detections)):
         if dl is None or dr is None:
             missing.append(i)
             continue
-        if board.kind == "chessboard":
-            dr = align_chessboard_order(dl, dr)
         if i in left.dropped or i in right.dropped:
             continue
-        common, il, ir = np.intersect1d(dl.ids, dr.ids, return_indices=True)
-        if common.size < 6:
+        if _add_pair(board, dl, dr, obj, img_l, img_r):
+            pairs.append(i)
+        else:
             missing.append(i)
-            continue
-        pairs.append(i)
-        obj.append(board.corners[common].astype(np.float32))
-        img_l.append(dl.pixels[il].astype(np.float32))
-        img_r.append(dr.pixels[ir].astype(np.float32))
     if len(pairs) < MIN_VIEWS:
         raise JaxStereoError(
             f"the board was found in both images of only {len(pairs)} pair(s); at least {MIN_VIEWS} are needed"
         )
+    if origin is not None and not _add_pair(board, origin[0], origin[1], obj, img_l, img_r):
+        raise JaxStereoError("the origin board's corners seen in both images are too few (fewer than 6)")
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
     rms, Kl, dl_, Kr, dr_, R, T, _, _, rvecs, tvecs, per_view = cv2.stereoCalibrateExtended(
         obj, img_l, img_r, left.K, left.dist, right.K, right.dist, image_size, None, None,
-        flags=cv2.CALIB_USE_INTRINSIC_GUESS, criteria=criteria,
+        flags=cv2.CALIB_USE_INTRINSIC_GUESS | flags, criteria=criteria,
     )
     left = dataclasses.replace(left, K=Kl, dist=dl_.ravel()[:5].copy())
     right = dataclasses.replace(right, K=Kr, dist=dr_.ravel()[:5].copy())
     pair_rms = np.sqrt(np.mean(np.asarray(per_view) ** 2, axis=1))
-    return StereoCalibration(left, right, R, T.ravel(), float(rms), pair_rms, pairs, missing, image_size)
+    origin_pose = (np.asarray(rvecs[-1]).ravel(), np.asarray(tvecs[-1]).ravel()) if origin is not None else (None, None)
+    if origin is not None:
+        pair_rms = pair_rms[:-1]
+    return StereoCalibration(left, right, R, T.ravel(), float(rms), pair_rms, pairs, missing, image_size,
+                             *origin_pose, "k1,k2,p1,p2,k3" if fuller else "k1,k2")
+
+
+def _add_pair(board, dl: Detection, dr: Detection, obj, img_l, img_r) -> bool:
+    """Append a pair's common corners to the adjustment's lists; False when fewer than 6 are common."""
+    if board.kind == "chessboard":
+        dr = align_chessboard_order(dl, dr)
+    common, il, ir = np.intersect1d(dl.ids, dr.ids, return_indices=True)
+    if common.size < 6:
+        return False
+    obj.append(board.corners[common].astype(np.float32))
+    img_l.append(dl.pixels[il].astype(np.float32))
+    img_r.append(dr.pixels[ir].astype(np.float32))
+    return True
 
 
 def align_chessboard_order(reference: Detection, other: Detection) -> Detection:
@@ -182,18 +233,26 @@ def world_frame_rig(
     The world origin is the board frame's origin: for a chessboard, the inner corner nearest the
     top-left of the left image; for a ChArUco board, OpenCV's board origin (the board's outer corner
     diagonally next to corner id 0). X runs along the board's columns, Z points up towards the
-    cameras and Y = Z x X. The left camera's pose comes from `solvePnP`, the right's from the stereo
-    calibration; with `refine` and `origin_right`, the two cameras are then moved together (their
-    calibrated relative pose kept) to minimise, with optimistix, the reprojection of all the board's
-    corners in both images.
+    cameras and Y = Z x X. The left camera's pose is the origin board's pose from the joint adjustment
+    when `stereo` was calibrated with the origin pair (`calibrate_stereo(..., origin=...)`: its corners
+    in both images, fitted together with the intrinsics and the stereo pose), else from `solvePnP` in
+    the left image; the right camera's follows from the stereo pose. Without the joint pose, `refine`
+    and `origin_right` move the two cameras together (their relative pose kept) to minimise, with
+    optimistix, the reprojection of the board's corners in both images; the result is kept only when
+    it lowers that RMS.
 
-    **Returns:** `(rig, report)`; the report has the RMS before and after refinement (pixels).
+    **Returns:** `(rig, report)`; the report says where the pose came from and has the origin board's RMS
+    (pixels).
     """
     obj = board.corners[origin_left.ids]
-    ok, rvec, tvec = cv2.solvePnP(obj, origin_left.pixels, stereo.left.K, stereo.left.dist,
-                                  flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok:
-        raise JaxStereoError("the origin board's pose could not be solved in the left image")
+    joint = stereo.origin_rvec is not None
+    if joint:
+        rvec, tvec = np.asarray(stereo.origin_rvec, float), np.asarray(stereo.origin_tvec, float)
+    else:
+        ok, rvec, tvec = cv2.solvePnP(obj, origin_left.pixels, stereo.left.K, stereo.left.dist,
+                                      flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            raise JaxStereoError("the origin board's pose could not be solved in the left image")
     R_bc, _ = cv2.Rodrigues(rvec)
     R_bc, t_bc = _flip_to_z_up(R_bc, tvec.ravel())
     flipped = not np.allclose(R_bc, cv2.Rodrigues(rvec)[0])
@@ -205,18 +264,22 @@ def world_frame_rig(
     right = Camera(stereo.right.K[0, 0], stereo.right.K[1, 1], stereo.right.K[0, 2], stereo.right.K[1, 2],
                    stereo.right.dist, Pose(jnp.asarray(R_r), jnp.asarray(t_r)), size)
     world_obj = obj * np.array([1.0, -1.0, -1.0]) if flipped else obj
-    report = {"origin_corners": int(len(obj)), "z_flipped": bool(flipped)}
+    report = {"origin_corners": int(len(obj)), "z_flipped": bool(flipped),
+              "pose_from": "joint adjustment with the calibration pairs" if joint else "solvePnP, left image"}
     if origin_right is not None:
         if board.kind == "chessboard":
             origin_right = align_chessboard_order(origin_left, origin_right)
         world_obj_r = board.corners[origin_right.ids] * (np.array([1.0, -1.0, -1.0]) if flipped else 1.0)
         before = _origin_rms(left, right, world_obj, origin_left.pixels, world_obj_r, origin_right.pixels)
         report["origin_rms_px_before"] = before
-        if refine:
-            left, right, after, steps = _refine_poses(left, right, world_obj, origin_left.pixels, world_obj_r,
-                                                      origin_right.pixels)
-            report["origin_rms_px_after"] = after
+        report["origin_rms_px_after"] = before
+        if refine and not joint:
+            new_left, new_right, after, steps = _refine_poses(left, right, world_obj, origin_left.pixels,
+                                                              world_obj_r, origin_right.pixels)
             report["refine_steps"] = steps
+            if after < before:
+                left, right = new_left, new_right
+                report["origin_rms_px_after"] = after
     rig = Rig(left, right, None, {})
     return rig, report
 

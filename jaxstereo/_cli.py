@@ -64,7 +64,6 @@ def _cmd_calibrate(args) -> int:
     print(f"calibrate: {len(left_paths)} pairs of {size[0]}x{size[1]} images, board {board}")
     left_det = detect_all(left_images, board)
     right_det = detect_all(right_images, board)
-    stereo = calibrate_stereo(left_det, right_det, board, size, drop_outliers=not args.keep_outliers)
     origin = []
     for path in (args.origin_left, args.origin_right):
         image = read_image(path, grayscale=True)
@@ -74,6 +73,8 @@ def _cmd_calibrate(args) -> int:
         if det is None:
             raise JaxStereoError(f"no board {board} found in origin image {path!r}")
         origin.append(det)
+    stereo = calibrate_stereo(left_det, right_det, board, size, drop_outliers=not args.keep_outliers,
+                              origin=None if args.no_refine else (origin[0], origin[1]))
     rig, report = world_frame_rig(stereo, board, origin[0], origin[1], refine=not args.no_refine)
     names = [p.name for p in left_paths]
     calibration = {
@@ -88,6 +89,7 @@ def _cmd_calibrate(args) -> int:
         "rms_right_px": stereo.right.rms_px,
         "rms_stereo_px": stereo.rms_px,
         "baseline_m": stereo.baseline_m,
+        "distortion_model": stereo.distortion_model,
         "world_frame": report,
     }
     rig = rig.__class__(rig.left, rig.right, None, calibration)
@@ -96,11 +98,13 @@ def _cmd_calibrate(args) -> int:
         ("views used (left / right / pairs)", f"{len(stereo.left.views)} / {len(stereo.right.views)} / {len(stereo.pairs)}"),
         ("RMS left / right / stereo (px)", f"{stereo.left.rms_px:.3f} / {stereo.right.rms_px:.3f} / {stereo.rms_px:.3f}"),
         ("baseline (m)", f"{stereo.baseline_m:.5f}"),
+        ("focal length left / right (px)", f"{stereo.left.K[0, 0]:.2f} / {stereo.right.K[0, 0]:.2f}"),
+        ("distortion model", stereo.distortion_model),
+        ("world frame from", report["pose_from"]),
         ("camera heights above z = 0 (m)", f"{heights[0]:.4f} / {heights[1]:.4f}"),
     ]
     if "origin_rms_px_after" in report:
-        rows.append(("origin board RMS before / after refine (px)",
-                     f"{report['origin_rms_px_before']:.3f} / {report['origin_rms_px_after']:.3f}"))
+        rows.append(("origin board RMS (px)", f"{report['origin_rms_px_after']:.3f}"))
     width = max(len(r[0]) for r in rows)
     for name, value in rows:
         print(f"  {name:<{width}}  {value}")
@@ -385,7 +389,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="rig JSON to write")
     p.add_argument("--figure", help="PNG of per-view errors (default: next to the rig, *_errors.png)")
     p.add_argument("--keep-outliers", action="store_true", help="do not drop views with outlying errors")
-    p.add_argument("--no-refine", action="store_true", help="skip the optimistix refinement of the world frame")
+    p.add_argument("--no-refine", action="store_true",
+                   help="world frame from the origin board in the left image alone (solvePnP), not from the joint "
+                        "adjustment of the origin pair with the calibration pairs")
     p.set_defaults(func=_cmd_calibrate)
 
     p = sub.add_parser(
@@ -464,9 +470,30 @@ def main(argv=None) -> int:
         return 0
     import jax
 
+    _use_compilation_cache(jax)
     try:
         with jax.enable_x64(True):  # geometry in float64, for this command only
             return args.func(args)
     except (JaxStereoError, OSError) as err:
         print(f"jaxstereo {args.command}: error: {err}", file=sys.stderr)
         return 2
+
+
+def _use_compilation_cache(jax) -> None:
+    """Keep compiled functions on disk between commands (JAX's persistent cache), so that a second command
+    on this machine compiles nothing. The folder is $JAXSTEREO_CACHE_DIR, or jaxstereo/jax under
+    $XDG_CACHE_HOME (~/.cache); JAXSTEREO_CACHE_DIR=off disables it. Set by the command line only: the
+    library never changes JAX's configuration."""
+    import os
+
+    folder = os.environ.get("JAXSTEREO_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxstereo", "jax")
+    if folder.lower() == "off":
+        return
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError:
+        return  # a read-only home: run without the cache rather than fail
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

@@ -73,9 +73,11 @@ def run_demo(out_dir="jaxstereo-demo", log=print) -> dict:
         for side, image in zip("LR", origin):
             write_image(calib / f"origin_{side}.png", image)
 
-        step("calibrating (OpenCV detection and calibration, world frame from the floor board, optimistix refine)")
-        stereo = calibrate_stereo(detect_all(left_imgs, board), detect_all(right_imgs, board), board, SIZE)
-        rig, frame = world_frame_rig(stereo, board, detect_board(origin[0], board), detect_board(origin[1], board))
+        step("calibrating (OpenCV detection; intrinsics, stereo pose and the floor board's frame in one adjustment)")
+        origin_det = (detect_board(origin[0], board), detect_board(origin[1], board))
+        stereo = calibrate_stereo(detect_all(left_imgs, board), detect_all(right_imgs, board), board, SIZE,
+                                  origin=origin_det)
+        rig, frame = world_frame_rig(stereo, board, *origin_det)
         rig = Rig(rig.left, rig.right, None, {"rms_stereo_px": stereo.rms_px, "world_frame": frame})
         save_rig(rig, out / "rig.json")
         plot_calibration_errors(stereo, out / "calibration_errors.png")
@@ -179,7 +181,7 @@ def _report_markdown(s: dict) -> str:
     for name, v in s["surveys"].items():
         secs = v["seconds"]
         lines.append(f"| {name} | {v['points']} | {100 * v['submerged_fraction']:.0f}% | "
-                     f"{secs['rectify+match air (s)']:.1f} / {secs['triangulate (s)']:.1f} |")
+                     f"{secs['rectify+match (s)']:.1f} / {secs['triangulate (s)']:.1f} |")
     lines += ["", "![stage III survey](survey_stageIII.png)", "", "## Damage", "",
               "Averaged over the whole 1 m wide model; S max is the worst single profile (every Dn50 across).", "",
               "| stage | A_e (m2) | L_e (m) | d_e (m) | S | S max | E2D | E3D | eroded (cm3) | level |",

@@ -69,29 +69,35 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, min_disparity: int, num_
     return disparity
 
 
-def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, window: int = 7,
-                     iterations: int = 3) -> np.ndarray:
-    """Sub-pixel refinement of a disparity map by dense Lucas-Kanade steps on the rectified pair.
+def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,
+                     window: int = 7, iterations: int = 4, max_shift_px: float = 0.5) -> np.ndarray:
+    """Sub-pixel refinement of a disparity map along each match's epipolar curve, bounded and cost-checked.
 
-    SGBM's parabola fit locks disparities towards integers (a bias that does not average out on
-    surfaces of nearly constant disparity, such as a flume floor). Each step warps the right image by
-    the current disparity and solves, over a `window` x `window` box around every pixel, the
-    least-squares shift that best aligns it with the left image. Steps are limited to half a pixel.
+    SGBM's parabola fit locks disparities towards integers. Each step warps the right image by the current
+    disparity (and by `row_offset`, the vertical position of the exact epipolar curve, when the
+    rectification is not exact) and solves, over a `window` x `window` box around every pixel, the
+    least-squares horizontal shift that best aligns it with the left image (zero-mean grey levels, so
+    that a brightness difference between the views does not pull it). A refined value is kept only
+    where it stays within `max_shift_px` of SGBM's, the texture is strong enough to determine it, and
+    its window's matching cost (sum of squared differences) is no higher than at SGBM's own value;
+    elsewhere SGBM's value (moved onto the curve) is kept. It therefore cannot drift off a match.
 
-    **Arguments:** rectified `left`, `right` images; `disparity` (h, w) pixels, NaN for no match
-    (`x_right = x_left - d`).
+    **Arguments:** rectified `left`, `right` images (grey or RGB, uint8); `disparity` (h, w) pixels, NaN
+    for no match (`x_right = x_left - d`); `row_offset` (h, w) pixels or None.
 
-    **Returns:** the refined disparity (h, w), NaN where the input was NaN or the texture too weak.
+    **Returns:** the refined disparity (h, w), NaN where the input was NaN.
     """
-    L = _grey_float(left)
-    Rimg = _grey_float(right)
+    L = _zero_mean(_grey_float(left), window)
+    Rimg = _zero_mean(_grey_float(right), window)
     h, w = L.shape
     u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    d = np.nan_to_num(disparity, nan=0.0).astype(np.float32)
-    map_y = v
     valid = np.isfinite(disparity)
+    d0 = np.where(valid, disparity, 0.0).astype(np.float32)
+    map_y = v if row_offset is None else v + np.where(valid, row_offset, 0.0).astype(np.float32)
     gx_full = cv2.Sobel(Rimg, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
     box = (window, window)
+    d = d0.copy()
+    sxx = np.zeros_like(L)
     for _ in range(iterations):
         map_x = u - d
         warped = cv2.remap(Rimg, map_x, map_y, cv2.INTER_LINEAR)
@@ -100,12 +106,26 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
         sxx = cv2.boxFilter(gx * gx, -1, box, normalize=False)
         sxr = cv2.boxFilter(gx * r, -1, box, normalize=False)
         # I_R(u - d - delta) ~ warped - delta * gx  =>  delta = -sum(r gx) / sum(gx^2)
-        ok = sxx > 1e-4 * window * window
+        ok = sxx > _MIN_GRADIENT_ENERGY * window * window
         step = np.where(ok, -sxr / np.where(ok, sxx, 1.0), 0.0)
-        d += np.clip(step, -0.5, 0.5)
-        valid &= ok
-    d[~valid] = np.nan
-    return d
+        d = np.clip(d + np.clip(step, -0.5, 0.5), d0 - max_shift_px, d0 + max_shift_px)
+    textured = sxx > _MIN_GRADIENT_ENERGY * window * window
+    better = _window_cost(L, Rimg, u - d, map_y, box) <= _window_cost(L, Rimg, u - d0, map_y, box)
+    refined = np.where(textured & better, d, d0)
+    refined[~valid] = np.nan
+    return refined
+
+
+_MIN_GRADIENT_ENERGY = 1.0  # grey levels^2 per pixel: below it a window does not fix a shift
+
+
+def _window_cost(L, Rimg, map_x, map_y, box):
+    warped = cv2.remap(Rimg, map_x, map_y, cv2.INTER_LINEAR)
+    return cv2.boxFilter((L - warped) ** 2, -1, box, normalize=False)
+
+
+def _zero_mean(image: np.ndarray, window: int) -> np.ndarray:
+    return image - cv2.blur(image, (2 * window + 1, 2 * window + 1))
 
 
 def _grey_float(image: np.ndarray) -> np.ndarray:
