@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxstereo import IncidenceRig, incidence_report
-from jaxstereo._plots import _pyplot, save_figure
+from jaxstereo._plots import new_figure, save_figure
 
 from ._common import Output
 
@@ -27,8 +27,7 @@ def run(out: Output, full: bool = False) -> None:
               rows, "The first-order model against exact Snell, paper's rig",
               "The paper's claim holds for the angle (under 0.5 deg below 20 deg); its 3-D consequence exceeds "
               "1 mm at a few degrees of incidence already for points a few decimetres deep.")
-    plt = _pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
+    fig, axes = new_figure(1, 3, figsize=(13, 3.8))
     for d, rep in reports.items():
         axes[0].plot(rep.incidence_deg, rep.angle_error_deg, color="k")
         axes[1].plot(rep.incidence_deg, rep.pixel_error_px, label=f"{d} m deep")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 import jaxstereo as js
-from jaxstereo._plots import _pyplot, save_figure
+from jaxstereo._plots import new_figure, save_figure
 
 from ._common import Output
 
@@ -55,8 +55,7 @@ def run(out: Output, full: bool = False) -> None:
               f"Sloping board, {size[0]}x{size[1]}, water 0.18 m: maximum |error| per 5 cm layer (paper's Table 1)",
               "Layers A-C are under water (z < 0.18 m). The paper's raw maxima grow from 4.5 to 12.4 mm with depth "
               "(first-order model, real images).")
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(9, 4.5), constrained_layout=True)
+    fig, ax = new_figure(figsize=(9, 4.5))
     for model, (x, z, ma) in profiles.items():
         ax.plot(x, 1e3 * (ma - spec.height(x)), label=f"{model} (MA 21)")
     ax.axvline(spec.toe_x_m + spec.run_m * 0.18 / spec.rise_m, color="tab:blue", ls=":", label="waterline")

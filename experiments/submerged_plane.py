@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 import jaxstereo as js
-from jaxstereo._plots import _pyplot, save_figure
+from jaxstereo._plots import new_figure, save_figure
 
 from ._common import Output
 
@@ -41,8 +41,7 @@ def run(out: Output, full: bool = False) -> None:
               f"Submerged plane, cameras 1.3 m above the water, baseline 0.3 m, {size[0]}x{size[1]}",
               "The paper: 3 cm maximum error at 1.5 m depth (2%) with the first-order model. The 99th percentile "
               "stands in for the maximum (single mismatches would dominate a maximum).")
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    fig, ax = new_figure(figsize=(7, 4))
     for model, values in results.items():
         ax.plot(depths, [1e3 * v[1] for v in values], "o-", label=f"{model} (99%)")
     ax.set_xlabel("depth of the plane (m)")

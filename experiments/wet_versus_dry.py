@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 import jaxstereo as js
-from jaxstereo._plots import _pyplot, save_figure
+from jaxstereo._plots import new_figure, save_figure
 
 from ._common import Output
 
@@ -46,8 +46,7 @@ def run(out: Output, full: bool = False) -> None:
               f"Breakwater, wet versus dry survey on a 3 cm grid, {size[0]}x{size[1]} (paper's Figure 13)",
               "The paper: about 4 mm mean wet-versus-dry difference, larger on the emerged part (lighting changed "
               "between its two surveys; here it does not).")
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(8, 4), constrained_layout=True)
+    fig, ax = new_figure(figsize=(8, 4))
     for model, profile in curves.items():
         ax.plot(x, 1e3 * profile, label=model)
     ax.axvline(spec.toe_x_m + spec.slope * SWL, color="tab:blue", ls=":", label="waterline")

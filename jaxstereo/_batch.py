@@ -223,16 +223,14 @@ def _rows_to_csv(rows: list[dict]) -> str:
 
 def _plot_tests(rows: list[dict], manifest: Manifest, out: Path) -> list[Path]:
     """One figure per test: S, E2D and E3D versus stage (the reference stage at zero)."""
-    from ._plots import _pyplot, save_figure
-
-    plt = _pyplot()
+    from ._plots import new_figure, save_figure
     paths = []
     for test in manifest.tests():
         stages = [r for r in rows if r["test"] == test]
         if not any(r["status"] == "ok" for r in stages):
             continue
         names = [r["stage"] for r in stages]
-        fig, ax = plt.subplots(figsize=(6, 3.8), constrained_layout=True)
+        fig, ax = new_figure(figsize=(6, 3.8))
         for key, style, label in (("S", "o-", "S (averaged profile)"), ("E2D", "o-", "E2D"), ("E3D", "s--", "E3D")):
             values = [0.0 if r["reference"] else r.get(key, np.nan) for r in stages]
             ax.plot(names, values, style, label=label)

@@ -115,7 +115,7 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
 def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir) -> list[Path]:
     """Write `damage.json`, `profiles.csv`, `profile.png` (averaged profiles, eroded area shaded) and
     `difference.png` (DEM difference map) to `out_dir`, each atomically. Returns the paths."""
-    from ._plots import _pyplot, save_figure
+    from ._plots import new_figure, save_figure
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -129,12 +129,10 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir)
         writer.writerow([f"{y:.4f}", f"{p.A_e:.6g}", f"{p.L_e:.5g}", f"{p.d_e:.5g}", f"{p.S:.4g}", f"{p.E2D:.4g}"])
     write_text_atomic(out / "profiles.csv", buf.getvalue())
     paths.append(out / "profiles.csv")
-
-    plt = _pyplot()
     both = np.isfinite(before.z) & np.isfinite(after.z)
     zb = _column_mean(np.where(both, before.z, np.nan))
     za = _column_mean(np.where(both, after.z, np.nan))
-    fig, ax = plt.subplots(figsize=(9, 4.2), constrained_layout=True)
+    fig, ax = new_figure(figsize=(9, 4.2))
     ax.plot(before.x, zb, color="0.3", label="initial (width-averaged)")
     ax.plot(before.x, za, color="tab:red", label="final (width-averaged)")
     ax.fill_between(before.x, za, zb, where=za < zb, color="tab:red", alpha=0.3, label="eroded")
@@ -154,7 +152,7 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir)
     save_figure(fig, out / "profile.png")
     paths.append(out / "profile.png")
 
-    fig, ax = plt.subplots(figsize=(8, 5), constrained_layout=True)
+    fig, ax = new_figure(figsize=(8, 5))
     diff = 1e3 * (after.z - before.z)
     lim = np.nanpercentile(np.abs(diff), 99) if np.isfinite(diff).any() else 1.0
     im = ax.imshow(diff, origin="lower", cmap="RdBu", vmin=-lim, vmax=lim,

@@ -25,7 +25,7 @@ from ._errors import JaxStereoError
 from ._incidence import incidence_report, plot_incidence_report
 from ._interface import Interface
 from ._io import write_text_atomic
-from ._plots import _pyplot, plot_calibration_errors, save_figure
+from ._plots import new_figure, plot_calibration_errors, save_figure
 from ._pose import Pose
 from ._reconstruct import ReconstructOptions, reconstruct
 from ._refine import find_correspondences, refine_rig
@@ -145,9 +145,8 @@ def run_demo(out_dir="jaxstereo-demo", log=print) -> dict:
 
 
 def _plot_damage_vs_stage(damage: dict, path):
-    plt = _pyplot()
     names = ["I", *damage]
-    fig, ax = plt.subplots(figsize=(6, 3.8), constrained_layout=True)
+    fig, ax = new_figure(figsize=(6, 3.8))
     for key, label in (("S", "S (averaged profile)"), ("E2D", "E2D")):
         ax.plot(names, [0.0] + [d["averaged_profile"][key] for d in damage.values()], "o-", label=label)
     ax.plot(names, [0.0] + [d["E3D"] for d in damage.values()], "s--", label="E3D")

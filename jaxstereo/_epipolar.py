@@ -98,25 +98,32 @@ def disparity_bounds(rect: Rectification, left: Camera, right: Camera, interface
     w, h = rect.size
     u, v = np.meshgrid(np.linspace(0, w - 1, 24), np.linspace(0, h - 1, 16))
     pixels = jnp.asarray(np.stack([u.ravel(), v.ravel()], axis=-1))
-    return _disparity_bounds(rect, left, right, interface, pixels, jnp.asarray([z_lo, z_hi]))
-
-
-def _disparity_bounds(rect, left, right, interface, pixels, heights):
-    origin, direction, _ = rectified_rays(rect, left, 0, pixels)
-    normal = interface.normal if interface is not None else jnp.asarray([0.0, 0.0, 1.0])
-    found = []
-    for z in np.asarray(heights):
-        point, s = intersect_plane(origin, direction, normal, z)
-        ok = (s > 0) & jnp.isfinite(s)
-        if interface is not None and z < float(interface.level):
-            hit, s0 = intersect_plane(origin, direction, normal, interface.level)
-            bent, ok_w = refract_directions(direction, normal, interface.n_air, interface.n_water)
-            point, s1 = intersect_plane(hit, bent, normal, z)
-            ok = (s0 > 0) & (s1 > 0) & ok_w & jnp.isfinite(s1)
-        right_px = project_exact_rectified(rect, right, 1, interface, point)
-        d = np.asarray(pixels[:, 0] - right_px[:, 0])[np.asarray(ok)]
-        found.append(d[np.isfinite(d)])
-    d = np.concatenate(found)
+    d, ok = _disparity_samples(rect, left, right, interface, pixels, jnp.asarray([z_lo, z_hi]))
+    d = np.asarray(d)[np.asarray(ok)]
+    d = d[np.isfinite(d)]
     if d.size == 0:
         return None
     return float(d.min()), float(d.max())
+
+
+@jax.jit
+def _disparity_samples(rect, left, right, interface, pixels, heights):
+    """Disparities (2, n) of the left rectified `pixels`' points at each of the two `heights`, and validity."""
+    origin, direction, _ = rectified_rays(rect, left, 0, pixels)
+    normal = interface.normal if interface is not None else jnp.asarray([0.0, 0.0, 1.0])
+    found, valid = [], []
+    for k in range(2):
+        z = heights[k]
+        point, s = intersect_plane(origin, direction, normal, z)
+        ok = (s > 0) & jnp.isfinite(s)
+        if interface is not None:
+            hit, s0 = intersect_plane(origin, direction, normal, interface.level)
+            bent, ok_w = refract_directions(direction, normal, interface.n_air, interface.n_water)
+            under, s1 = intersect_plane(hit, bent, normal, z)
+            below = z < interface.level
+            point = jnp.where(below, under, point)
+            ok = jnp.where(below, (s0 > 0) & (s1 > 0) & ok_w & jnp.isfinite(s1), ok)
+        right_px = project_exact_rectified(rect, right, 1, interface, point)
+        found.append(pixels[:, 0] - right_px[:, 0])
+        valid.append(ok)
+    return jnp.stack(found), jnp.stack(valid)

@@ -153,14 +153,9 @@ def incidence_report(incidence_deg=None, rig: IncidenceRig | None = None) -> Inc
 
 def plot_incidence_report(report: IncidenceReport, path) -> None:
     """Save a three-panel PNG (angle, pixel and 3-D error versus incidence) to `path`, atomically."""
-    import matplotlib
+    from ._plots import new_figure, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ._io import atomic_path
-
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
+    fig, axes = new_figure(1, 3, figsize=(13, 3.8))
     x = report.incidence_deg
     panels = [
         (report.angle_error_deg, "refraction-angle error (deg)", 0.5, "deg"),
@@ -180,6 +175,4 @@ def plot_incidence_report(report: IncidenceReport, path) -> None:
         f"First-order (virtual camera) vs exact Snell: n = {rig.n_water / rig.n_air:.3f}, camera {rig.height_m:g} m "
         f"above water, baseline {rig.baseline_m:g} m, f = {rig.focal_px:g} px"
     )
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
+    save_figure(fig, path)

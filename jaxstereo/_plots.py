@@ -7,30 +7,30 @@ import numpy as np
 from ._io import atomic_path
 
 
-def _pyplot():
-    import matplotlib
+def new_figure(nrows: int = 1, ncols: int = 1, figsize=(6.4, 4.8)):
+    """A matplotlib `Figure` and its axes, with a constrained layout.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Built with matplotlib's object API, not pyplot: the library never touches pyplot's global state or
+    backend (a user's notebook keeps its own), and drawing needs no GUI.
+    """
+    from matplotlib.figure import Figure
 
-    return plt
+    fig = Figure(figsize=figsize, layout="constrained")
+    return fig, fig.subplots(nrows, ncols)
 
 
 def save_figure(fig, path, dpi: int = 120) -> None:
-    """Save a matplotlib figure as PNG to `path` atomically and close it."""
-    plt = _pyplot()
+    """Save a matplotlib figure as PNG to `path` atomically."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
-    plt.close(fig)
 
 
 def plot_calibration_errors(stereo, path, names: list[str] | None = None) -> None:
     """Bar chart of per-view reprojection RMS (left, right, stereo pairs), dropped views marked."""
-    plt = _pyplot()
     n = max([*stereo.left.views, *stereo.left.dropped, *stereo.right.views, *stereo.right.dropped,
              *stereo.pairs, *stereo.missing, 0]) + 1
     x = np.arange(n)
-    fig, ax = plt.subplots(figsize=(max(6.0, 0.45 * n + 2), 3.8), constrained_layout=True)
+    fig, ax = new_figure(figsize=(max(6.0, 0.45 * n + 2), 3.8))
     for offset, cal, label, colour in ((-0.27, stereo.left, "left", "tab:blue"), (0.0, stereo.right, "right", "tab:orange")):
         values = np.full(n, np.nan)
         values[cal.views] = cal.view_rms_px

@@ -21,6 +21,7 @@ import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import ndimage
 
 from ._camera import Camera
 from ._epipolar import disparity_bounds, exact_row_offset, triangulate_exact
@@ -175,13 +176,32 @@ def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera,
 _triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=4)
 
 
-def _row_offsets(rect, rig, interface, disparity):
-    """Row offset (h, w) of each match's exact epipolar curve in the right rectified image (NaN: no match)."""
-    rl, rr, v, u = _pairs_from_disparity(disparity)
+OFFSET_GRID_PX = 32  # spacing of the exact row-offset table in u and v (pixels)
+OFFSET_GRID_DISPARITY_PX = 4  # and in disparity
+
+
+def _row_offsets(rect, rig, interface, disparity, search):
+    """Row offset (h, w) of each match's exact epipolar curve in the right rectified image (NaN: no match).
+
+    The offset is a smooth function of (u, v, disparity): computed exactly on a table every
+    `OFFSET_GRID_PX` pixels and `OFFSET_GRID_DISPARITY_PX` of disparity over the search range, and
+    interpolated (trilinearly) for every match.
+    """
+    h, w = disparity.shape
+    us = np.arange(0, w - 1 + OFFSET_GRID_PX, OFFSET_GRID_PX, dtype=np.float64)
+    vs = np.arange(0, h - 1 + OFFSET_GRID_PX, OFFSET_GRID_PX, dtype=np.float64)
+    ds = np.arange(search[0], search[0] + search[1] + OFFSET_GRID_DISPARITY_PX, OFFSET_GRID_DISPARITY_PX,
+                   dtype=np.float64)
+    V, U, Dg = np.meshgrid(vs, us, ds, indexing="ij")
+    rl = np.stack([U.ravel(), V.ravel()], axis=-1)
+    rr = np.stack([U.ravel() - Dg.ravel(), V.ravel()], axis=-1)
+    table, _ = _chunked(exact_row_offset, (rect, rig.left, rig.right, interface), rl, rr)
+    table = np.nan_to_num(table.reshape(V.shape), nan=0.0)
+    v, u = np.nonzero(np.isfinite(disparity))
+    coords = np.stack([v / OFFSET_GRID_PX, u / OFFSET_GRID_PX,
+                       (disparity[v, u] - search[0]) / OFFSET_GRID_DISPARITY_PX])
     offset = np.full(disparity.shape, np.nan, np.float32)
-    if rl.shape[0]:
-        dv, _ = _chunked(exact_row_offset, (rect, rig.left, rig.right, interface), rl, rr)
-        offset[v, u] = dv
+    offset[v, u] = ndimage.map_coordinates(table, coords, order=1, mode="nearest")
     return offset
 
 
@@ -225,7 +245,7 @@ def reconstruct(
     timings["rectify+match (s)"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    offset = _row_offsets(rect, rig, interface, disparity) if model == "exact" else None
+    offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None
     if options.subpixel:
         disparity = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
                                      options.subpixel_iterations)

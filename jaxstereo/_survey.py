@@ -85,10 +85,8 @@ def save_ply(survey: Survey, path) -> None:
 
 def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title: str = "") -> None:
     """Two panels: height in the left image's pixels, and a top view (x, y) coloured by height."""
-    from ._plots import _pyplot, save_figure
-
-    plt = _pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
+    from ._plots import new_figure, save_figure
+    fig, axes = new_figure(1, 2, figsize=(13, 4.8))
     w, h = image_size
     z = survey.points[:, 2]
     if len(survey):
