@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -259,9 +260,10 @@ def _cmd_refine(args) -> int:
         else:
             raise JaxStereoError(f"--control {item!r}: use 'floor', a DEM or survey .npz, or a control-points .csv")
     pl, pr = find_correspondences(left, right, args.max_points)
+    print(f"refine: {len(pl)} SIFT correspondences")
     result = refine_rig(rig, pl, pr, args.water_level_guess, refine=refine, control=control,
                         floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points)
-    print(f"refine: {result.n_correspondences} correspondences, {result.n_control} control terms, "
+    print(f"  {result.n_correspondences} consistent with the rig, {result.n_control} control terms, "
           f"{result.steps} steps ({result.seconds:.1f} s)")
     for name, (value, std) in result.parameters.items():
         print(f"  {name:<34} {value:+.5f} +/- {std:.5f}")
@@ -269,11 +271,24 @@ def _cmd_refine(args) -> int:
     if control is not None:
         print(f"  control surface std (from the data) {1e3 * result.surface_sigma_m:.2f} mm, "
               f"{result.n_control - (0 if points is None else len(points[0]))} points on it")
+    print(f"  solver                             {result.result}")
+    if not result.converged:
+        raise JaxStereoError(f"the bundle adjustment {result.result} after {result.steps} steps: no rig written "
+                             "(check the level guess, the control and the correspondences)")
     if "water" in refine and not result.level_determined:
         level, std = result.parameters["water level (m)"]
-        print(f"  WATER LEVEL NOT DETERMINED: its standard deviation is {1e3 * std:.1f} mm; the images cannot "
-              "fix it with this control. Add control (--control floor with --floor-x, a dry DEM, control points) or keep "
-              "the gauge reading.")
+        message = (f"water level not determined: {level:.4f} m +/- {1e3 * std:.1f} mm from {result.n_correspondences} "
+                   f"correspondences and {result.n_control} control terms; add control (--control floor with "
+                   "--floor-x, a dry DEM, control points)")
+        if not args.keep_guess:
+            raise JaxStereoError(message + ", or pass --keep-guess to write the rig at the guessed level")
+        print(f"  WATER LEVEL NOT DETERMINED ({message}); keeping the guess {args.water_level_guess:.4f} m (--keep-guess)")
+        kept = result.rig.interface.with_level(float(args.water_level_guess))
+        calibration = dict(result.rig.calibration)
+        calibration["refine"] = {**calibration["refine"], "level_kept_from_guess": True,
+                                 "note": "the images did not determine the level; the guess (gauge reading) was kept"}
+        result = dataclasses.replace(result, rig=result.rig.__class__(result.rig.left, result.rig.right, kept,
+                                                                       calibration))
     save_rig(result.rig, args.output)
     print(f"rig: {args.output}")
     return 0
@@ -430,6 +445,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="world x range where the floor is bare (e.g. in front of the toe)")
     p.add_argument("--refine", default="water", help="comma list of water, tilt, right-pose (default water)")
     p.add_argument("--max-points", type=int, default=2000, help="correspondences to use (default 2000)")
+    p.add_argument("--keep-guess", action="store_true",
+                   help="when the images cannot determine the level, write the rig at the guessed level (said so in "
+                        "its provenance) instead of refusing")
     p.add_argument("-o", "--output", required=True, help="refined rig JSON")
     p.set_defaults(func=_cmd_refine)
 

@@ -26,6 +26,8 @@ class RigSpec:
     - `tilt_deg`: both optical axes tilted from nadir towards +Y (a rotation about world X), degrees.
     - `convergence_deg`: toe-in of each camera towards the other (about world Y), degrees.
     - `dist`: OpenCV distortion coefficients shared by both cameras (k1, k2, p1, p2, k3), or zeros.
+    - `misalignment_deg`: per camera (left, right), small rotations (about the camera's x, y, z axes,
+      degrees) applied after the nominal pose: real rigs are never exactly parallel.
     """
 
     focal_mm: float = 35.0
@@ -38,6 +40,8 @@ class RigSpec:
     tilt_deg: float = 0.0
     convergence_deg: float = 0.0
     dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    misalignment_deg: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0.0, 0.0, 0.0),
+                                                                                      (0.0, 0.0, 0.0))
 
     def __post_init__(self):
         for name in ("focal_mm", "sensor_width_mm", "camera_height_m", "baseline_m"):
@@ -67,6 +71,29 @@ def _rot_y(a):
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
+def _rot_z(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def realistic_rig_spec(**overrides) -> RigSpec:
+    """The paper's rig as it is really mounted: each camera tilted and turned by 0.3-0.7 degrees, a 35 mm
+    lens's radial distortion (k1 -0.08, k2 0.12). Fields can be overridden."""
+    spec = RigSpec(dist=(-0.08, 0.12, 0.0, 0.0, 0.0), misalignment_deg=((0.4, -0.3, 0.6), (-0.5, 0.7, -0.35)))
+    return dataclasses.replace(spec, **overrides)
+
+
+def jpeg(image: np.ndarray, quality: int = 95) -> np.ndarray:
+    """The image as a camera saves it: through JPEG at `quality` (RGB or grey uint8 in and out)."""
+    import cv2
+
+    ok, data = cv2.imencode(".jpg", image[..., ::-1] if image.ndim == 3 else image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise JaxStereoError("JPEG encoding failed")
+    out = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    return out[..., ::-1].copy() if out.ndim == 3 else out
+
+
 def flume_rig(spec: RigSpec = RigSpec()) -> tuple[Camera, Camera]:
     """The left and right cameras of a rig spec (left at -X, image x along world X when nadir).
 
@@ -78,11 +105,12 @@ def flume_rig(spec: RigSpec = RigSpec()) -> tuple[Camera, Camera]:
     nadir = np.diag([1.0, -1.0, -1.0])  # rows: camera x, y, z axes in world coordinates
     tilt = _rot_x(np.deg2rad(spec.tilt_deg))
     cams = []
-    for sign in (-1.0, 1.0):
+    for sign, (ax, ay, az) in zip((-1.0, 1.0), spec.misalignment_deg):
         center = np.array([spec.center_xy_m[0] + sign * spec.baseline_m / 2, spec.center_xy_m[1],
                            spec.water_level_m + spec.camera_height_m])
         toe_in = _rot_y(sign * np.deg2rad(spec.convergence_deg))
         R = nadir @ (tilt @ toe_in).T
+        R = _rot_x(np.deg2rad(ax)) @ _rot_y(np.deg2rad(ay)) @ _rot_z(np.deg2rad(az)) @ R
         cams.append(Camera(f, f, cx, cy, np.asarray(spec.dist, dtype=np.float64), Pose.from_center(R, center),
                            spec.image_size))
     return cams[0], cams[1]

@@ -60,12 +60,19 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, min_disparity: int, num_
         uniquenessRatio=options.uniqueness, speckleWindowSize=options.speckle_window,
         speckleRange=options.speckle_range, mode=_MODES[options.mode],
     )
-    raw = matcher.compute(left, right)
+    # SGBM leaves the first minDisparity + numDisparities columns of the left image unmatched, though their
+    # matches lie in the right image from column d on: pad both images on the left by numDisparities columns,
+    # then drop the matches that land in the padding (their true match is outside the right image).
+    pad = num_disparities
+    border = [cv2.copyMakeBorder(im, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0) for im in (left, right)]
+    raw = matcher.compute(border[0], border[1])[:, pad:]
     disparity = raw.astype(np.float32) / 16.0
     invalid = raw <= (min_disparity - 1) * 16
     # Pixels whose support window leaves either image are unreliable too.
     valid_left = left.reshape(left.shape[0], left.shape[1], -1).max(axis=-1) > 0
-    disparity[invalid | ~valid_left] = np.nan
+    columns = np.arange(left.shape[1], dtype=np.float32)[None, :]
+    outside = columns - disparity < bs // 2
+    disparity[invalid | ~valid_left | outside] = np.nan
     return disparity
 
 

@@ -145,6 +145,19 @@ def _residuals(theta, args):
     return jnp.concatenate([reproj, control, gcp.ravel()])
 
 
+_RESULT_WORDS = (("successful", "converged"), ("nonlinear_max_steps_reached", "stopped at its step limit"),
+                 ("nonlinear_divergence", "diverged"), ("nonfinite", "met non-finite values"))
+
+
+def result_in_words(result) -> str:
+    """optimistix's result code in words: "converged", "stopped at its step limit", "diverged", ..."""
+    for name, words in _RESULT_WORDS:
+        item = getattr(optx.RESULTS, name, None)
+        if item is not None and bool(result == item):
+            return words
+    return "failed"
+
+
 def _robust(r, scale):
     """Cauchy loss as a residual rescaling: `r sqrt(log(1 + u) / u)`, `u = (r / scale)^2` (smooth at 0)."""
     u = (r / scale) ** 2
@@ -160,8 +173,9 @@ class RefineResult:
     **Fields:** `rig` the refined rig (interface set); `parameters` name -> (value, standard deviation)
     in user units (level m, tilt deg, rotation deg, translation mm); `level_determined` whether the water
     level's standard deviation is below 2 mm; `rms_before_px`, `rms_after_px` reprojection RMS of the
-    inliers; `n_correspondences`, `n_control`; `steps` solver steps; `result` optimistix's result
-    message; `seconds`; `surface_sigma_m` the standard deviation given to the floor or DEM control terms
+    inliers; `n_correspondences`, `n_control`; `steps` solver steps; `result` the last solve's outcome in
+    words ("converged", "stopped at its step limit", "diverged", ...), `converged` whether every solve
+    converged; `seconds`; `surface_sigma_m` the standard deviation given to the floor or DEM control terms
     (the larger of the one asked for and the points' own scatter about the surface), metres.
     """
 
@@ -176,6 +190,7 @@ class RefineResult:
     result: str
     seconds: float
     surface_sigma_m: float
+    converged: bool = True
 
 
 def _check_which(refine) -> tuple[str, ...]:
@@ -291,6 +306,7 @@ def refine_rig(
     theta0 = jnp.zeros(model.size)
     solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
     sol = optx.least_squares(fn, solver, theta0, (args, weights_for(surface_sigma)), max_steps=max_steps, throw=False)
+    outcomes = [result_in_words(sol.result)]
     theta = sol.value
     base_sigma = surface_sigma
     if control is not None:
@@ -316,6 +332,7 @@ def refine_rig(
             args = (model, args[1], args[2], jnp.asarray(mask), jnp.asarray(np.where(mask, control_z, 0.0)), *args[5:])
             sol = optx.least_squares(fn, solver, theta, (args, weights_for(surface_sigma)), max_steps=max_steps,
                                      throw=False)
+            outcomes.append(result_in_words(sol.result))
             theta = sol.value
     problem = (args, weights_for(surface_sigma))
     raw_before = np.asarray(_residuals(theta0, args))[:n_reproj]
@@ -352,16 +369,17 @@ def refine_rig(
         for i, axis in enumerate("12"):
             params[f"right shift across baseline {axis} (mm)"] = (float(values[k + 3 + i]), float(std[k + 3 + i]))
     level_std = params.get("water level (m)", (0.0, 0.0))[1]
-    determined = bool(np.isfinite(level_std) and level_std < LEVEL_STD_LIMIT_M)
+    converged = all(o == "converged" for o in outcomes)
+    determined = bool(np.isfinite(level_std) and level_std < LEVEL_STD_LIMIT_M and converged)
     calibration = dict(rig.calibration)
     calibration["refine"] = {"parameters": {k_: list(v) for k_, v in params.items()},
                              "level_determined": determined, "rms_before_px": rms_before, "rms_after_px": rms_after,
                              "correspondences": int(len(pl)), "control_points": int(mask.sum()),
-                             "surface_sigma_m": surface_sigma}
+                             "surface_sigma_m": surface_sigma, "solver": outcomes[-1], "converged": converged}
     refined = Rig(rig.left, right, interface, calibration)
     return RefineResult(refined, params, determined, rms_before, rms_after, int(len(pl)),
                         int(mask.sum()) + int(gcp[0].shape[0]),
-                        int(sol.stats["num_steps"]), str(sol.result), time.perf_counter() - start, surface_sigma)
+                        int(sol.stats["num_steps"]), outcomes[-1], time.perf_counter() - start, surface_sigma, converged)
 
 
 def dem_heights(dem: DEM, xy: np.ndarray) -> np.ndarray:

@@ -177,8 +177,15 @@ def test_refine_command(tmp_path, capsys):
     save_dem(_dry_dem(scene, shift_x=5.0), tmp_path / "elsewhere.npz")
     assert main(args + ["--control", str(tmp_path / "elsewhere.npz")]) == 2
     assert "does not overlap the correspondences" in capsys.readouterr().err
-    assert main(args) == 0  # no control: said plainly
+    (tmp_path / "wet.json").unlink()
+    assert main(args) == 2  # no control: refused, in one line, and no rig written
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "water level not determined" in err and "--keep-guess" in err, err
+    assert not (tmp_path / "wet.json").exists()
+    assert main(args + ["--keep-guess"]) == 0  # or, asked for, the guess is kept and said so
     assert "WATER LEVEL NOT DETERMINED" in capsys.readouterr().out
+    kept = load_rig(tmp_path / "wet.json")
+    assert float(kept.interface.level) == LEVEL + 0.05 and kept.calibration["refine"]["level_kept_from_guess"]
     (tmp_path / "bad.csv").write_text("u,v\n1,2\n")
     assert main(args + ["--control", str(tmp_path / "bad.csv")]) == 2
     assert "must have 7 columns" in capsys.readouterr().err
