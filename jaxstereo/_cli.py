@@ -190,7 +190,7 @@ def _cmd_grid(args) -> int:
 
 def _cmd_damage(args) -> int:
     from ._damage import parse_slope
-    from ._damage_report import stretch_damage, write_damage_report
+    from ._damage_report import ACTIVE_ZONE_DN50, stretch_damage, write_damage_report
     from ._grid import load_surface
 
     if not (args.dn50 > 0):
@@ -201,19 +201,55 @@ def _cmd_damage(args) -> int:
     after = load_surface(args.after, spacing, before.x, before.y, max_gap_m=args.max_gap)
     if not np.any(np.isfinite(before.z) & np.isfinite(after.z)):
         raise JaxStereoError(f"{args.before!r} and {args.after!r} do not overlap: are they in the same world frame?")
-    origin = tuple(args.slope_origin) if args.slope_origin else None
-    result = stretch_damage(before, after, args.dn50, cot, args.swl, origin, args.profile_spacing)
+    origin = _design_slope_origin(args, cot, before)
+    result = stretch_damage(before, after, args.dn50, cot, args.swl, origin, args.profile_spacing,
+                            stretch=tuple(args.stretch) if args.stretch else None,
+                            active_zone_dn50=tuple(args.active_zone) if args.active_zone else ACTIVE_ZONE_DN50)
     paths = write_damage_report(result, before, after, args.output)
     a = result.averaged
+    width = "whole surveyed width" if result.whole_width else "tested stretch"
     print(f"damage: Dn50 {args.dn50:g} m, slope 1:{cot:g}, SWL {args.swl:g} m, {len(result.profiles)} profiles")
+    print(f"  {width:<18} y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m")
+    print(f"  active zone        z {result.active_zone[0]:.3f} to {result.active_zone[1]:.3f} m on the design slope")
     print(f"  averaged profile   A_e {a.A_e:.5f} m2  L_e {a.L_e:.3f} m  d_e {a.d_e:.4f} m  S {a.S:.2f}  E2D {a.E2D:.2f}")
     print(f"  over the stretch   S mean {result.S_mean:.2f} (S > {result.threshold:g})  S max {result.S_max:.2f}  "
           f"L_e max {result.L_e_max:.3f} m  d_e max {result.d_e_max:.4f} m")
+    e3d = "not measurable (no Dn50 circle covered by both surveys)" if result.volumes.E3D is None else \
+        f"{result.volumes.E3D:.2f}"
     print(f"  3-D                eroded {result.volumes.eroded_m3 * 1e6:.0f} cm3  accreted "
-          f"{result.volumes.accreted_m3 * 1e6:.0f} cm3  E3D {result.volumes.E3D:.2f}")
-    print(f"  damage level       {result.level}")
+          f"{result.volumes.accreted_m3 * 1e6:.0f} cm3  E3D {e3d}")
+    print(f"  damage level       {result.level} (S {a.S:.2f} of the averaged profile, slope 1:{cot:g})")
+    for y, why in result.skipped:
+        print(f"  profile y {y:+.3f} m not computed: {why}")
     print("report: " + ", ".join(str(p) for p in paths))
     return 0
+
+
+def _design_slope_origin(args, cot: float, before) -> tuple[float, float]:
+    """The design slope line's point from --slope-origin, --slope-points or (on request) --fit-slope."""
+    from ._damage_report import _column_mean, fit_design_slope
+
+    given = [name for name in ("slope_origin", "slope_points", "fit_slope") if getattr(args, name)]
+    if len(given) != 1:
+        raise JaxStereoError("place the design slope with exactly one of --slope-origin X Z (its toe, say), "
+                             "--slope-points X1 Z1 X2 Z2 or --fit-slope" + (f" (got {len(given)})" if given else ""))
+    if args.slope_origin:
+        return tuple(args.slope_origin)
+    if args.slope_points:
+        x1, z1, x2, z2 = args.slope_points
+        if x2 == x1 or (z2 - z1) == 0:
+            raise JaxStereoError("--slope-points must be two distinct points of a sloping line")
+        cot_points = abs((x2 - x1) / (z2 - z1))
+        if abs(cot_points - cot) > 0.05 * cot:
+            raise JaxStereoError(f"--slope-points give a slope of 1:{cot_points:.2f} but --slope is 1:{cot:g}")
+        return (x1, z1)
+    origin, rms = fit_design_slope(before.x, _column_mean(before.z), cot, args.swl, args.dn50)
+    print(f"design slope fitted to the initial survey near the SWL: x0 {origin[0]:.4f} m at z 0, RMS "
+          f"{1e3 * rms:.1f} mm normal to the slope")
+    if rms > 0.5 * args.dn50:
+        print(f"  WARNING: the initial survey departs from a 1:{cot:g} line by {1e3 * rms:.0f} mm RMS near the SWL: "
+              "is --slope right? Prefer --slope-origin.")
+    return origin
 
 
 def _read_control_points(path):
@@ -470,7 +506,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--slope", required=True, help="design slope: cotangent (2) or V:H (1:2)")
     p.add_argument("--swl", type=float, required=True, help="still water level, m (world Z)")
     p.add_argument("--slope-origin", type=float, nargs=2, metavar=("X", "Z"),
-                   help="a point of the design slope line (default: fitted near the SWL)")
+                   help="a point of the design slope line (its toe, say), m")
+    p.add_argument("--slope-points", type=float, nargs=4, metavar=("X1", "Z1", "X2", "Z2"),
+                   help="two points of the design slope line, m (checked against --slope)")
+    p.add_argument("--fit-slope", action="store_true",
+                   help="fit the design slope line to the initial survey near the SWL (its fit error is printed)")
+    p.add_argument("--stretch", type=float, nargs=2, metavar=("Y0", "Y1"),
+                   help="the tested stretch (characterisation width), y from Y0 to Y1, m (default: the whole "
+                        "surveyed width)")
+    p.add_argument("--active-zone", type=float, nargs=2, metavar=("BELOW", "ABOVE"), default=None,
+                   help="count erosion from BELOW Dn50 under the SWL to ABOVE Dn50 over it, along the slope "
+                        "(default 6 4)")
     p.add_argument("--spacing", type=float, default=0.005, help="grid spacing for surveys, m (default 0.005)")
     p.add_argument("--max-gap", type=float, default=0.01, help="fill holes up to this size, m (default 0.01)")
     p.add_argument("--profile-spacing", type=float, help="distance between profiles, m (default Dn50)")

@@ -18,8 +18,10 @@ from scipy import ndimage
 from ._errors import JaxStereoError
 from ._grid import DEM
 
-# Damage levels for rock armour (van der Meer): S at start of damage, intermediate range, failure.
-_DAMAGE_LEVELS = {1.5: (2.0, (3.0, 5.0), 8.0), 2.0: (2.0, (4.0, 6.0), 8.0), 3.0: (2.0, (6.0, 9.0), 12.0)}
+# Damage levels for rock armour (van der Meer): S at start of damage, intermediate range, failure, by slope
+# (cotangent), from 1:1.5 to 1:6.
+_DAMAGE_LEVELS = {1.5: (2.0, (3.0, 5.0), 8.0), 2.0: (2.0, (4.0, 6.0), 8.0), 3.0: (2.0, (6.0, 9.0), 12.0),
+                  4.0: (3.0, (8.0, 12.0), 17.0), 6.0: (3.0, (8.0, 12.0), 17.0)}
 
 
 def parse_slope(text) -> float:
@@ -51,7 +53,8 @@ class Zone:
 @dataclasses.dataclass(frozen=True)
 class ProfileDamage:
     """Damage of one cross-section: every erosion and accretion zone, and the largest erosion zone's
-    `A_e` (m^2), `L_e` (m), `d_e` (m), with `S` and `E2D` for the given Dn50."""
+    `A_e` (m^2), `L_e` (m), `d_e` (m), with `S` and `E2D` for the given Dn50; `swept` the (start, end)
+    abscissae along the slope (m) that the sweep covered (the active zone where one was given)."""
 
     erosion: list[Zone]
     accretion: list[Zone]
@@ -60,6 +63,7 @@ class ProfileDamage:
     d_e: float
     S: float
     E2D: float
+    swept: tuple[float, float] = (float("nan"), float("nan"))
 
 
 def to_slope_frame(x, z, cot: float, origin=(0.0, 0.0)):
@@ -102,7 +106,13 @@ def _zones(X, D, sign):
     return zones
 
 
-def profile_damage(initial, final, dn50: float, cot: float, origin=(0.0, 0.0)) -> ProfileDamage:
+def slope_abscissa(z: float, cot: float, origin=(0.0, 0.0)) -> float:
+    """Abscissa along the design slope (m, the frame of `to_slope_frame`) of the slope line's point at height z."""
+    return (z - origin[1]) * float(np.hypot(cot, 1.0))
+
+
+def profile_damage(initial, final, dn50: float, cot: float, origin=(0.0, 0.0),
+                   active_zone: tuple[float, float] | None = None) -> ProfileDamage:
     """Damage between two cross-sections, as the paper's section 4.2 sweeps them.
 
     **Arguments:**
@@ -111,6 +121,9 @@ def profile_damage(initial, final, dn50: float, cot: float, origin=(0.0, 0.0)) -
     - `dn50`: nominal diameter of the armour units, metres.
     - `cot`: the design slope's cotangent (2 for 1:2).
     - `origin`: a point `(x, z)` on the design slope line.
+    - `active_zone`: `(start, end)` abscissae along the slope (metres, see `slope_abscissa`): erosion and
+      accretion are counted there only (the zone around the still water level); None: wherever the
+      profiles overlap.
     """
     if not (np.isfinite(dn50) and dn50 > 0):
         raise JaxStereoError(f"Dn50 must be positive (metres), got {dn50}")
@@ -127,6 +140,11 @@ def profile_damage(initial, final, dn50: float, cot: float, origin=(0.0, 0.0)) -
     lo, hi = max(Xi[0], Xf[0]), min(Xi[-1], Xf[-1])
     if hi <= lo:
         raise JaxStereoError("the initial and final profiles do not overlap along the slope")
+    if active_zone is not None:
+        lo, hi = max(lo, active_zone[0]), min(hi, active_zone[1])
+        if hi <= lo:
+            raise JaxStereoError(f"the profiles do not reach the active zone ({active_zone[0]:.3f} to "
+                                 f"{active_zone[1]:.3f} m along the slope)")
     X = np.unique(np.concatenate([Xi, Xf, [lo, hi]]))
     X = X[(X >= lo) & (X <= hi)]
     D = np.interp(X, Xf, Zf) - np.interp(X, Xi, Zi)
@@ -134,13 +152,26 @@ def profile_damage(initial, final, dn50: float, cot: float, origin=(0.0, 0.0)) -
     accretion = _zones(X, D, +1.0)
     biggest = max(erosion, key=lambda zn: zn.area) if erosion else Zone(0.0, 0.0, 0.0, 0.0, 0.0)
     return ProfileDamage(erosion, accretion, biggest.area, biggest.length, biggest.depth,
-                         biggest.area / dn50**2, biggest.depth / dn50)
+                         biggest.area / dn50**2, biggest.depth / dn50, (float(lo), float(hi)))
+
+
+def damage_thresholds(cot: float) -> tuple[float, tuple[float, float], float]:
+    """Van der Meer's damage levels of rock armour for a slope: (start of damage, (intermediate range),
+    failure) in S. Tabulated for slopes 1:1.5, 1:2, 1:3, 1:4 and 1:6; between them, linear in the
+    cotangent. Steeper or flatter slopes are outside the table: `JaxStereoError`."""
+    slopes = sorted(_DAMAGE_LEVELS)
+    if not slopes[0] - 1e-9 <= cot <= slopes[-1] + 1e-9:
+        raise JaxStereoError(f"van der Meer's damage levels cover slopes from 1:{slopes[0]:g} to 1:{slopes[-1]:g}; "
+                             f"the slope 1:{cot:g} is outside them")
+    rows = [_DAMAGE_LEVELS[c] for c in slopes]
+    table = np.array([[r[0], r[1][0], r[1][1], r[2]] for r in rows])
+    start, lo, hi, failure = (float(np.interp(cot, slopes, table[:, k])) for k in range(4))
+    return start, (lo, hi), failure
 
 
 def damage_level(S: float, cot: float) -> str:
-    """Damage level of rock armour from S and the slope (van der Meer's levels, nearest tabulated slope)."""
-    key = min(_DAMAGE_LEVELS, key=lambda c: abs(c - cot))
-    start, (lo, hi), failure = _DAMAGE_LEVELS[key]
+    """Damage level of rock armour from S on a slope of cotangent `cot` (see `damage_thresholds`)."""
+    start, (lo, hi), failure = damage_thresholds(cot)
     if S < start:
         return "no damage"
     if S < lo:
@@ -155,12 +186,13 @@ def damage_level(S: float, cot: float) -> str:
 @dataclasses.dataclass(frozen=True)
 class DemDamage:
     """3-D damage from a DEM difference: `eroded_m3`, `accreted_m3`, and `E3D` (the largest erosion
-    depth averaged over a circle of diameter Dn50, divided by Dn50) at `E3D_xy`."""
+    depth averaged over a circle of diameter Dn50, divided by Dn50) at `E3D_xy`; `E3D` is None (not
+    measurable) when no Dn50 circle is covered by data in both DEMs."""
 
     eroded_m3: float
     accreted_m3: float
-    E3D: float
-    E3D_xy: tuple[float, float]
+    E3D: float | None
+    E3D_xy: tuple[float, float] | None
 
 
 def dem_damage(before: DEM, after: DEM, dn50: float) -> DemDamage:
@@ -184,8 +216,9 @@ def dem_damage(before: DEM, after: DEM, dn50: float) -> DemDamage:
     total = ndimage.convolve(depth, disk, mode="constant")
     count = ndimage.convolve(valid.astype(np.float64), disk, mode="constant")
     full = count >= 0.9 * disk.sum()
+    if not full.any():
+        return DemDamage(eroded, accreted, None, None)
     mean = np.where(full, total / np.maximum(count, 1), -np.inf)
     k = int(np.argmax(mean))
     i, j = np.unravel_index(k, mean.shape)
-    e3d = float(max(mean[i, j], 0.0) / dn50) if np.isfinite(mean[i, j]) else 0.0
-    return DemDamage(eroded, accreted, e3d, (float(before.x[j]), float(before.y[i])))
+    return DemDamage(eroded, accreted, float(max(mean[i, j], 0.0) / dn50), (float(before.x[j]), float(before.y[i])))
