@@ -122,7 +122,7 @@ def run_pair(job: PairJob) -> dict:
 
 def _process_pair(job: PairJob) -> dict:
     from ._damage import parse_slope
-    from ._damage_report import stretch_damage, write_damage_report
+    from ._damage_report import ACTIVE_ZONE_DN50, _column_mean, fit_design_slope, stretch_damage, write_damage_report
     from ._grid import fill_holes, grid_median, load_dem, save_dem
     from ._images import check_pair, read_image
     from ._reconstruct import ReconstructOptions, reconstruct
@@ -170,15 +170,22 @@ def _process_pair(job: PairJob) -> dict:
             raise JaxStereoError(f"survey of {pair.key} does not overlap its reference stage's DEM")
         else:
             d = job.damage
-            result = stretch_damage(reference_dem, dem, d.dn50, parse_slope(d.slope), d.swl, d.slope_origin,
-                                    d.profile_spacing)
+            cot = parse_slope(d.slope)
+            origin = d.slope_origin
+            if d.fit_slope:
+                origin, _ = fit_design_slope(reference_dem.x, _column_mean(reference_dem.z), cot, d.swl, d.dn50)
+            result = stretch_damage(reference_dem, dem, d.dn50, cot, d.swl, origin, d.profile_spacing,
+                                    stretch=d.stretch, active_zone_dn50=d.active_zone or ACTIVE_ZONE_DN50)
             lap("damage (s)")
             write_damage_report(result, reference_dem, dem, out / "damage")
             lap("damage report and figures (s)")
             a = result.averaged
             row.update(A_e_m2=a.A_e, L_e_m=a.L_e, d_e_m=a.d_e, S=a.S, S_max=result.S_max, E2D=a.E2D,
                        E3D=result.volumes.E3D, eroded_volume_m3=result.volumes.eroded_m3,
-                       accreted_volume_m3=result.volumes.accreted_m3, damage_level=result.level)
+                       accreted_volume_m3=result.volumes.accreted_m3, damage_level=result.level,
+                       stretch_y_m=f"{result.stretch[0]:.3f} to {result.stretch[1]:.3f}"
+                       + (" (whole width)" if result.whole_width else ""),
+                       active_zone_z_m=f"{result.active_zone[0]:.3f} to {result.active_zone[1]:.3f}")
     row["fingerprint"] = job.fingerprint
     write_text_atomic(out / RESULT, json.dumps({**row, "test": pair.test, "stage": pair.stage,
                                                 "reference": pair.reference}, indent=2, default=float) + "\n")

@@ -365,6 +365,14 @@ def _campaign_from_folder(folder: Path, args):
         missing = [f"--{k}" for k, v in damage.items() if v is None]
         if missing:
             raise JaxStereoError(f"damage needs --dn50, --slope and --swl together; missing {', '.join(missing)}")
+        if args.slope_origin:
+            damage["slope_origin"] = list(args.slope_origin)
+        if args.fit_slope:
+            damage["fit_slope"] = True
+        if args.stretch:
+            damage["stretch"] = list(args.stretch)
+        if args.active_zone:
+            damage["active_zone"] = list(args.active_zone)
         data["damage"] = damage
     return manifest_from_dict(data, folder, folder.resolve().parent)
 
@@ -402,6 +410,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dn50", type=float, help="armour Dn50, m, for damage (folder of pairs only)")
     p.add_argument("--slope", help="design slope, e.g. 1:2, for damage (folder of pairs only)")
     p.add_argument("--swl", type=float, help="still water level, m, for damage (folder of pairs only)")
+    p.add_argument("--slope-origin", type=float, nargs=2, metavar=("X", "Z"),
+                   help="a point of the design slope line, m (folder of pairs only)")
+    p.add_argument("--fit-slope", action="store_true",
+                   help="fit the design slope to each test's reference survey (folder of pairs only)")
+    p.add_argument("--stretch", type=float, nargs=2, metavar=("Y0", "Y1"),
+                   help="the tested stretch, m (folder of pairs only; default the whole surveyed width)")
+    p.add_argument("--active-zone", type=float, nargs=2, metavar=("BELOW", "ABOVE"),
+                   help="erosion counted from BELOW to ABOVE Dn50 about the SWL (folder of pairs only; default 6 4)")
     p.add_argument("-o", "--output", help="output folder (default: the manifest's output, or MANIFEST-out)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: this process)")
     p.add_argument("--scheduler", metavar="ADDRESS",

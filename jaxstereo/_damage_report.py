@@ -128,25 +128,6 @@ def _column_mean(z: np.ndarray) -> np.ndarray:
     return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
-def _stretch_rows(before: DEM, after: DEM, stretch):
-    both = np.isfinite(before.z) & np.isfinite(after.z)
-    inside = np.ones(before.y.shape, bool)
-    if stretch is not None:
-        y0, y1 = sorted(float(v) for v in stretch)
-        inside = (before.y >= y0) & (before.y <= y1)
-        if not inside.any():
-            raise JaxStereoError(f"the stretch y {y0:.3f} to {y1:.3f} m lies outside the surveys (y "
-                                 f"{before.y[0]:.3f} to {before.y[-1]:.3f} m)")
-    covered = inside & (both.sum(axis=1) >= 0.2 * both.shape[1])
-    rows = np.nonzero(covered)[0]
-    if rows.size == 0:
-        where = "in the stretch" if stretch is not None else "anywhere"
-        raise JaxStereoError(f"the before and after surfaces do not overlap {where} (no cross-section with data "
-                             "in both)")
-    extent = (float(before.y[rows[0]]), float(before.y[rows[-1]])) if stretch is None else tuple(sorted(stretch))
-    return rows, both, extent
-
-
 ON_SLOPE_DN50 = 1.0  # an initial cross-section follows the design slope when its median distance is within 1 Dn50
 
 
@@ -166,6 +147,47 @@ def _off_the_slope(x, z, cot, origin, zone, dn50) -> str:
         return (f"the initial section lies {1e3 * distance:.0f} mm (median) off the design slope: not a "
                 "cross-section of the structure")
     return ""
+
+
+def _section_rows(before: DEM, after: DEM, cot, origin, zone, dn50, stretch):
+    """The DEM rows that are cross-sections of the structure inside the stretch, the (y, reason) of those left
+    out, and the stretch's extent (y0, y1)."""
+    both = np.isfinite(before.z) & np.isfinite(after.z)
+    covered = both.sum(axis=1) >= 0.2 * both.shape[1]
+    if not covered.any():
+        raise JaxStereoError("the before and after surfaces do not overlap (no cross-section with data in both)")
+    reasons = {}
+    for r in np.nonzero(covered)[0]:
+        why = _off_the_slope(before.x, before.z[r], cot, origin, zone, dn50)
+        if why:
+            reasons[r] = why
+    structure = covered.copy()
+    structure[list(reasons)] = False
+    if not structure.any():
+        raise JaxStereoError(f"no cross-section of the initial survey follows the design slope: {next(iter(reasons.values()))}")
+    # Sections within Dn50 of the structure's sides see its side faces, where a lateral shift between the
+    # surveys would read as erosion: they are left out too.
+    margin = int(round(dn50 / before.spacing))
+    inner = ndimage.binary_erosion(structure, np.ones(2 * margin + 1, bool), border_value=0)
+    for r in np.nonzero(structure & ~inner)[0]:
+        reasons[r] = "within Dn50 of the side of the surveyed structure"
+    if not inner.any():
+        raise JaxStereoError("the surveyed structure is narrower than 2 Dn50: no cross-section away from its sides")
+    if stretch is not None:
+        y0, y1 = sorted(float(v) for v in stretch)
+        in_stretch = (before.y >= y0) & (before.y <= y1)
+        if not (in_stretch & covered).any():
+            raise JaxStereoError(f"the stretch y {y0:.3f} to {y1:.3f} m lies outside the surveys (y "
+                                 f"{before.y[0]:.3f} to {before.y[-1]:.3f} m)")
+        rows = np.nonzero(inner & in_stretch)[0]
+        if rows.size == 0:
+            raise JaxStereoError(f"no cross-section of the structure in the stretch y {y0:.3f} to {y1:.3f} m")
+        extent = (y0, y1)
+    else:
+        rows = np.nonzero(inner)[0]
+        extent = (float(before.y[rows[0]]), float(before.y[rows[-1]]))
+    skipped = sorted((float(before.y[r]), why) for r, why in reasons.items() if extent[0] <= before.y[r] <= extent[1])
+    return rows, skipped, extent
 
 
 def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float, origin,
@@ -197,36 +219,12 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
         raise JaxStereoError(f"the active zone must extend below and/or above the SWL, got {active_zone_dn50} Dn50")
     foot = dn50 / 4 if foot_radius_m is None else float(foot_radius_m)
     before, after = profiler_foot(before, foot), profiler_foot(after, foot)
-    rows, both, extent = _stretch_rows(before, after, stretch)
     x_swl = slope_abscissa(swl, cot, origin)
     zone = (x_swl - below * dn50, x_swl + above * dn50)
     norm = float(np.hypot(cot, 1.0))
     zone_z = (swl - below * dn50 / norm, swl + above * dn50 / norm)
-    on_slope, skipped = [], []
-    for r in rows:
-        why = _off_the_slope(before.x, before.z[r], cot, origin, zone, dn50)
-        if why:
-            skipped.append((float(before.y[r]), why))
-        else:
-            on_slope.append(r)
-    if not on_slope:
-        raise JaxStereoError(f"no cross-section of the initial survey follows the design slope: {skipped[0][1]}")
-    # Sections within Dn50 of the structure's sides see its side faces, where a lateral shift between the
-    # surveys would read as erosion: they are left out too.
-    margin = int(round(dn50 / before.spacing))
-    structure = np.zeros(before.y.size, bool)
-    structure[on_slope] = True
-    inner = ndimage.binary_erosion(structure, np.ones(2 * margin + 1, bool), border_value=0)
-    for r in on_slope:
-        if not inner[r]:
-            skipped.append((float(before.y[r]), "within Dn50 of the side of the surveyed structure"))
-    on_slope = [r for r in on_slope if inner[r]]
-    if not on_slope:
-        raise JaxStereoError("the surveyed structure is narrower than 2 Dn50: no cross-section away from its sides")
-    rows = np.asarray(on_slope)
-    if stretch is None:
-        extent = (float(before.y[rows[0]]), float(before.y[rows[-1]]))
-    skipped = sorted((y, why) for y, why in skipped if extent[0] <= y <= extent[1])
+    rows, skipped, extent = _section_rows(before, after, cot, origin, zone, dn50, stretch)
+    both = np.isfinite(before.z) & np.isfinite(after.z)
     mean_before = _column_mean(np.where(both[rows], before.z[rows], np.nan))
     mean_after = _column_mean(np.where(both[rows], after.z[rows], np.nan))
     averaged = profile_damage((before.x, mean_before), (before.x, mean_after), dn50, cot, origin, zone)
@@ -242,7 +240,9 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
         raise JaxStereoError(f"no cross-section could be computed: {skipped[0][1]}")
     s_values = np.array([p.S for _, p in profiles])
     above_threshold = s_values[s_values > threshold]
-    volumes = dem_damage(before, after, dn50)
+    outside = (before.y < extent[0]) | (before.y > extent[1])
+    volumes = dem_damage(*(DEM(d.x, d.y, np.where(outside[:, None], np.nan, d.z), d.spacing) for d in (before, after)),
+                         dn50)
     return StretchDamage(
         profiles=profiles, skipped=skipped, averaged=averaged,
         S_mean=float(above_threshold.mean()) if above_threshold.size else 0.0, S_max=float(s_values.max()),

@@ -12,13 +12,14 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._board_render import board_poses, render_board
 from ._boards import BoardSpec
 from ._calibration import calibrate_stereo, detect_all, world_frame_rig
 from ._damage_report import stretch_damage, write_damage_report
 from ._detect import detect_board
-from ._flume_rig import RigSpec, flume_rig
+from ._flume_rig import flume_rig, jpeg, realistic_rig_spec
 from ._grid import fill_holes, grid_median, save_dem
 from ._images import write_image
 from ._errors import JaxStereoError
@@ -37,6 +38,7 @@ from ._survey import plot_survey_preview, save_survey
 SWL = 0.158
 GAUGE = 0.165  # the level "read off the gauge": 7 mm off
 SIZE = (864, 576)
+TESTED_STRETCH = (-0.2, 0.2)  # y, metres: the central 0.4 m of the 1 m wide model, away from the flume walls
 BOARD = "chessboard:9x6:0.06"
 STAGES = (("I", None), ("II", Damage(half_length_dn50=2.0, half_width_dn50=3.0, swl_m=SWL)),
           ("III", Damage(half_length_dn50=3.0, half_width_dn50=3.5, deep_fraction=0.6, swl_m=SWL)))
@@ -55,7 +57,7 @@ def run_demo(out_dir="jaxstereo-demo", log=print) -> dict:
         log(f"[{time.perf_counter() - started:5.1f} s] {message}")
 
     with jax.enable_x64(True):
-        spec = RigSpec(image_size=SIZE, water_level_m=SWL)
+        spec = realistic_rig_spec(image_size=SIZE, water_level_m=SWL)
         true_left, true_right = flume_rig(spec)
         board = BoardSpec.parse(BOARD)
 
@@ -94,7 +96,7 @@ def run_demo(out_dir="jaxstereo-demo", log=print) -> dict:
             step(f"rendering stage {name} of the breakwater under {SWL} m of water")
             scene_spec = Breakwater(seed=7, damage=damage)
             scene = build_scene(scene_spec)
-            images = [render_view(c, scene.heightfield, water).image for c in (true_left, true_right)]
+            images = [jpeg(render_view(c, scene.heightfield, water).image) for c in (true_left, true_right)]
             for side, image in zip("LR", images):
                 write_image(out / "pairs" / f"stage{name}_{side}.png", image)
             write_text_atomic(out / "pairs" / f"stage{name}_scene.json", scene_to_json(scene_spec) + "\n")
@@ -131,7 +133,7 @@ def run_demo(out_dir="jaxstereo-demo", log=print) -> dict:
         summary["damage"] = {}
         for (name, scene_spec, _), dem in zip(stages[1:], dems[1:]):
             result = stretch_damage(dems[0], dem, scene_spec.dn50_m, scene_spec.slope, SWL,
-                                    origin=(scene_spec.toe_x_m, 0.0))
+                                    origin=(scene_spec.toe_x_m, 0.0), stretch=TESTED_STRETCH)
             write_damage_report(result, dems[0], dem, out / f"damage_stage{name}")
             summary["damage"][name] = result.to_dict()
             summary["damage"][name].pop("profiles")
@@ -149,7 +151,7 @@ def _plot_damage_vs_stage(damage: dict, path):
     fig, ax = new_figure(figsize=(6, 3.8))
     for key, label in (("S", "S (averaged profile)"), ("E2D", "E2D")):
         ax.plot(names, [0.0] + [d["averaged_profile"][key] for d in damage.values()], "o-", label=label)
-    ax.plot(names, [0.0] + [d["E3D"] for d in damage.values()], "s--", label="E3D")
+    ax.plot(names, [0.0] + [np.nan if d["E3D"] is None else d["E3D"] for d in damage.values()], "s--", label="E3D")
     ax.set_xlabel("stage")
     ax.set_ylabel("damage parameter")
     ax.set_title("Damage versus stage")
@@ -182,13 +184,19 @@ def _report_markdown(s: dict) -> str:
         lines.append(f"| {name} | {v['points']} | {100 * v['submerged_fraction']:.0f}% | "
                      f"{secs['rectify+match (s)']:.1f} / {secs['triangulate (s)']:.1f} |")
     lines += ["", "![stage III survey](survey_stageIII.png)", "", "## Damage", "",
-              "Averaged over the whole 1 m wide model; S max is the worst single profile (every Dn50 across).", "",
+              f"Tested stretch y {TESTED_STRETCH[0]:+.2f} to {TESTED_STRETCH[1]:+.2f} m (the central part of the 1 m wide "
+              "model); erosion counted in the active zone z "
+              + " to ".join(f"{z:.3f}" for z in next(iter(s["damage"].values()))["active_zone_z_m"])
+              + " m (6 Dn50 below to 4 Dn50 above the SWL along the slope); surfaces as a Dn50/4 ball foot sees them. "
+              "S is the characteristic S of the stretch (its averaged profile), and the level is that S's on the 1:2 "
+              "slope; S max is the worst single profile (every Dn50 across).", "",
               "| stage | A_e (m2) | L_e (m) | d_e (m) | S | S max | E2D | E3D | eroded (cm3) | level |",
               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for name, d in s["damage"].items():
         a = d["averaged_profile"]
         lines.append(f"| {name} | {a['A_e_m2']:.5f} | {a['L_e_m']:.3f} | {a['d_e_m']:.4f} | {a['S']:.2f} | "
-                     f"{d['S_max']:.2f} | {a['E2D']:.2f} | {d['E3D']:.2f} | {1e6 * d['eroded_volume_m3']:.0f} | {d['damage_level']} |")
+                     f"{d['S_max']:.2f} | {a['E2D']:.2f} | {'n/m' if d['E3D'] is None else format(d['E3D'], '.2f')} | "
+                     f"{1e6 * d['eroded_volume_m3']:.0f} | {d['damage_level']} |")
     lines += ["", "![damage versus stage](damage_vs_stage.png)", "",
               "![stage III profile](damage_stageIII/profile.png)", "", "![stage III difference](damage_stageIII/difference.png)",
               "", "## The first-order model's error", "", "![incidence](incidence.png)", "",

@@ -13,7 +13,9 @@ A manifest is a TOML file. Paths in it are relative to the manifest's folder. Ex
     dn50 = 0.036                  # metres
     slope = "1:2"
     swl = 0.158                   # metres
-    slope_origin = [1.2, 0.0]     # optional (x, z) of the design slope, metres
+    slope_origin = [1.2, 0.0]     # (x, z) of a point of the design slope (its toe), metres; or fit_slope = true
+    stretch = [-0.2, 0.2]         # optional: the tested stretch, y from, y to (metres); default the whole width
+    active_zone = [6, 4]          # optional: erosion counted from 6 Dn50 below to 4 Dn50 above the SWL
 
     [[pair]]                      # one table per stereo pair
     test = "T01"
@@ -42,7 +44,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 _TOP_KEYS = {"rig", "water_level", "model", "z_range", "spacing", "max_gap", "damage", "pair", "pairs", "stages",
              "output"}
 _PAIR_KEYS = {"test", "stage", "left", "right", "reference", "water_level"}
-_DAMAGE_KEYS = {"dn50", "slope", "swl", "slope_origin", "profile_spacing"}
+_DAMAGE_KEYS = {"dn50", "slope", "swl", "slope_origin", "fit_slope", "profile_spacing", "stretch", "active_zone"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,14 +67,18 @@ class PairEntry:
 
 @dataclasses.dataclass(frozen=True)
 class DamageSettings:
-    """Damage settings: `dn50` metres, `slope` (as given, e.g. "1:2"), `swl` metres, optional
-    `slope_origin` (x, z) metres and `profile_spacing` metres."""
+    """Damage settings: `dn50` metres, `slope` (as given, e.g. "1:2"), `swl` metres, the design slope's
+    `slope_origin` (x, z) metres or `fit_slope` (fitted to each test's reference DEM), and optional
+    `profile_spacing` metres, `stretch` (y0, y1) metres and `active_zone` (below, above) in Dn50."""
 
     dn50: float
     slope: str
     swl: float
     slope_origin: tuple[float, float] | None = None
     profile_spacing: float | None = None
+    fit_slope: bool = False
+    stretch: tuple[float, float] | None = None
+    active_zone: tuple[float, float] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,6 +105,15 @@ class Manifest:
 
     def reference_of(self, test: str) -> PairEntry:
         return next(p for p in self.pairs if p.test == test and p.reference)
+
+
+def _pair_of_numbers(path, table: dict, key: str):
+    value = table.get(key)
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != 2 or not all(isinstance(v, (int, float)) for v in value):
+        _fail(path, f"[damage] {key} must be a list of two numbers, got {value!r}")
+    return float(value[0]), float(value[1])
 
 
 def _fail(path: Path, message: str):
@@ -222,21 +237,25 @@ def manifest_from_dict(data: dict, path: Path, base: Path) -> Manifest:
         for key in ("dn50", "slope", "swl"):
             if key not in table:
                 _fail(path, f"[damage] needs {key}")
-        origin = table.get("slope_origin")
-        if origin is not None:
-            if not isinstance(origin, list) or len(origin) != 2:
-                _fail(path, f"[damage] slope_origin must be [X, Z] in metres, got {origin!r}")
-            origin = (float(origin[0]), float(origin[1]))
+        origin, stretch, zone = (_pair_of_numbers(path, table, key) for key in ("slope_origin", "stretch",
+                                                                                  "active_zone"))
+        fit = table.get("fit_slope", False)
+        if not isinstance(fit, bool):
+            _fail(path, f"[damage] fit_slope must be true or false, got {fit!r}")
         from ._damage import parse_slope
 
         try:
             parse_slope(str(table["slope"]))
         except JaxStereoError as err:
             _fail(path, f"[damage] {err}")
+        if (origin is None) == (not fit):
+            _fail(path, "[damage] place the design slope with exactly one of slope_origin = [X, Z] (its toe, say) "
+                        "or fit_slope = true")
         damage = DamageSettings(
             dn50=_number(path, table, "dn50", "[damage] ", positive=True), slope=str(table["slope"]),
             swl=_number(path, table, "swl", "[damage] "), slope_origin=origin,
-            profile_spacing=_number(path, table, "profile_spacing", "[damage] ", positive=True))
+            profile_spacing=_number(path, table, "profile_spacing", "[damage] ", positive=True), fit_slope=fit,
+            stretch=stretch, active_zone=zone)
 
     if "pair" in data and "pairs" in data:
         _fail(path, "give either [[pair]] tables or pairs = \"FOLDER\", not both")

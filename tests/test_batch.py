@@ -149,7 +149,7 @@ def test_folder_of_pairs_named_by_convention(campaign, tmp_path, capsys):
     for path in (root / "pairs").glob("T01_*.png"):
         shutil.copyfile(path, folder / path.name)
     out = tmp_path / "out"
-    damage = ["--dn50", "0.036", "--slope", "1:2", "--swl", str(SWL)]
+    damage = ["--dn50", "0.036", "--slope", "1:2", "--swl", str(SWL), "--slope-origin", str(specs[0].toe_x_m), "0"]
     assert main(["batch", str(folder), "--rig", str(root / "rig.json"), "--water-level", str(SWL), *damage,
                  "-o", str(out)]) == 0
     rows = _rows(out / "summary.csv")

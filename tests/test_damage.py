@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 import jaxstereo as js
-from jaxstereo._damage import damage_level, dem_damage, parse_slope, profile_damage, to_slope_frame
+from jaxstereo._damage import (damage_level, damage_thresholds, dem_damage, parse_slope, profile_damage, slope_abscissa,
+                               to_slope_frame)
 from jaxstereo._grid import DEM, grid_median
 from jaxstereo._profiles import moving_average, profile_from_dem
 
@@ -129,3 +130,95 @@ def test_damage_levels():
     assert damage_level(5.0, 2.0) == "intermediate damage"
     assert damage_level(9.0, 2.0) == "failure"
     assert damage_level(10.0, 3.0) == "advanced damage"
+    # A 1:4 slope has its own thresholds (start 3, intermediate 8-12, failure 17), not 1:3's.
+    assert damage_level(7.0, 3.0) == "intermediate damage" and damage_level(7.0, 4.0) == "start of damage"
+    assert damage_level(16.0, 4.0) == "advanced damage" and damage_level(17.0, 6.0) == "failure"
+    start, (lo, hi), failure = damage_thresholds(2.5)  # between 1:2 and 1:3: linear in the cotangent
+    assert (start, lo, hi, failure) == (2.0, 5.0, 7.5, 10.0)
+    with pytest.raises(js.JaxStereoError, match="outside"):
+        damage_level(3.0, 8.0)
+
+
+def test_erosion_outside_the_active_zone_is_not_counted():
+    X = np.unique(np.concatenate([np.linspace(-0.6, 0.6, 1201), [-0.1, -0.05, 0.0, 0.35, 0.4, 0.45]]))
+    # A small hole at the still water level (X' = 0 here) and a larger one 0.4 m up the slope (the crest).
+    Z = _notch(X, -0.05, 0.1, 0.0, 0.02) + _notch(X, 0.4, 0.1, 0.0, 0.05)
+    origin = (0.1, 0.05)
+    swl = origin[1]  # the slope line meets the SWL at the origin
+    everywhere = profile_damage(_slope_profile(X, 0 * X), _slope_profile(X, Z), DN50, COT, origin)
+    assert abs(everywhere.A_e - 0.1 * 0.05 / 2) < 1e-12  # the crest's hole, counted without a zone
+    zone = (slope_abscissa(swl, COT, origin) - 6 * DN50, slope_abscissa(swl, COT, origin) + 4 * DN50)
+    active = profile_damage(_slope_profile(X, 0 * X), _slope_profile(X, Z), DN50, COT, origin, zone)
+    assert abs(active.A_e - 0.1 * 0.02 / 2) < 1e-12 and len(active.erosion) == 1
+    assert active.swept == pytest.approx(zone)
+
+
+def _dems(rows_with_hole, depth=0.03, cot=COT, spacing=0.004):
+    """DEMs of a 1:cot slope through (0, 0); the after one with a square-sided hole 8 cm long, centred on z = 0,
+    on the given rows (a boolean per y)."""
+    x = np.arange(-0.4, 0.6 + 1e-9, spacing)
+    y = np.arange(-0.3, 0.3 + 1e-9, spacing)
+    X, Y = np.meshgrid(x, y)
+    z = X / cot
+    hole = (np.abs(X) <= 0.04 * cot / np.hypot(cot, 1)) & rows_with_hole(Y)
+    return DEM(x, y, z, spacing), DEM(x, y, z - depth * hole, spacing)
+
+
+def test_stretch_is_the_average_of_its_profiles():
+    from jaxstereo._damage_report import stretch_damage
+
+    # A hole on |y| < 0.1, and a deeper one for y > 0.2, outside the tested stretch.
+    before, after = _dems(lambda Y: (np.abs(Y) < 0.1) | (Y > 0.2))
+    result = stretch_damage(before, after, DN50, COT, 0.0, (0.0, 0.0), profile_spacing_m=0.004,
+                            stretch=(-0.15, 0.15), foot_radius_m=0.0)
+    rows = (before.y >= -0.15) & (before.y <= 0.15)
+    by_hand = profile_damage((before.x, before.z[rows].mean(axis=0)), (after.x, after.z[rows].mean(axis=0)),
+                             DN50, COT, (0.0, 0.0), result.averaged.swept)
+    assert result.averaged.A_e == pytest.approx(by_hand.A_e, rel=1e-12) and by_hand.A_e > 0
+    assert result.averaged.d_e == pytest.approx(by_hand.d_e, rel=1e-12)
+    inside = [p for y, p in result.profiles]
+    assert all(-0.15 <= y <= 0.15 for y, _ in result.profiles) and not result.whole_width
+    # Profiles through the hole see its full depth; the stretch's characteristic S is their width average.
+    assert max(p.d_e for p in inside) == pytest.approx(0.03 * COT / np.hypot(COT, 1), rel=1e-6)
+    assert result.level == damage_level(result.averaged.S, COT)
+    whole = stretch_damage(before, after, DN50, COT, 0.0, (0.0, 0.0), foot_radius_m=0.0)
+    assert whole.whole_width and any(y > 0.2 and p.A_e > 0 for y, p in whole.profiles)
+    assert whole.stretch[0] > before.y[0] and whole.stretch[1] < before.y[-1]  # Dn50 off the model's sides
+
+
+def test_no_silent_zeros():
+    from jaxstereo._damage_report import stretch_damage
+
+    before, after = _dems(lambda Y: np.abs(Y) < 0.1)
+    nan_after = DEM(after.x, after.y, np.full_like(after.z, np.nan), after.spacing)
+    with pytest.raises(js.JaxStereoError, match="do not overlap"):
+        stretch_damage(before, nan_after, DN50, COT, 0.0, (0.0, 0.0))
+    with pytest.raises(js.JaxStereoError, match="outside the surveys"):
+        stretch_damage(before, after, DN50, COT, 0.0, (0.0, 0.0), stretch=(2.0, 3.0))
+    # A narrow strip of data: no Dn50 circle is covered, so E3D is not measurable (None), not 0.
+    strip = np.full_like(after.z, np.nan)
+    strip[:, :3] = after.z[:, :3]
+    assert dem_damage(before, DEM(after.x, after.y, strip, after.spacing), DN50).E3D is None
+    # Sections off the design slope are named with their reason, not silently dropped.
+    off = before.z.copy()
+    off[before.y > 0.25] = -0.2
+    result = stretch_damage(DEM(before.x, before.y, off, before.spacing), after, DN50, COT, 0.0, (0.0, 0.0),
+                            stretch=(-0.3, 0.3))
+    assert any("off the design slope" in why for _, why in result.skipped)
+    assert all(y <= 0.25 for y, _ in result.profiles)
+
+
+def test_profiler_foot_bridges_crevices_and_keeps_holes():
+    from jaxstereo._damage_report import profiler_foot
+
+    spacing = 0.002
+    x = np.arange(0, 0.2, spacing)
+    X, Y = np.meshgrid(x, x)
+    z = np.zeros_like(X)
+    z[(np.abs(X - 0.05) < 0.003)] = -0.02  # a crevice 6 mm wide: the 9 mm ball does not reach its bottom
+    z[(np.abs(X - 0.15) < 0.03) & (np.abs(Y - 0.1) < 0.03)] = -0.02  # a hole 6 cm across: it does
+    z[50, 20] = 0.05  # a single-cell spike
+    seen = profiler_foot(DEM(x, x, z, spacing), 0.009).z
+    assert seen[:, 25].min() > -0.005  # bridged (the ball sags at most r - sqrt(r^2 - 3^2) mm)
+    assert seen[50, 75] == pytest.approx(-0.02)  # the hole's middle
+    assert abs(seen[50, 20]) < 1e-12  # the spike removed

@@ -40,10 +40,12 @@ def test_folder_by_convention_with_stage_order(folder):
 def test_pair_tables_reference_and_overrides(folder):
     text = "".join(f'[[pair]]\ntest = "T"\nstage = "{s}"\nleft = "pairs/A2_{s}_L.png"\nright = "pairs/A2_{s}_R.png"\n'
                    + ('reference = true\nwater_level = 0.25\n' if s == "mid" else "") for s in ("before", "mid", "after"))
-    m = load_manifest(_write(folder, "[damage]\ndn50 = 0.036\nslope = 2\nswl = 0.158\n" + text))
+    m = load_manifest(_write(folder, "[damage]\ndn50 = 0.036\nslope = 2\nswl = 0.158\nslope_origin = [0.1, 0.0]\n"
+                                     "stretch = [-0.2, 0.2]\nactive_zone = [5, 3]\n" + text))
     assert [p.stage for p in m.pairs] == ["mid", "before", "after"]  # the reference first
     assert m.pairs[0].water_level == 0.25 and m.pairs[1].water_level is None
-    assert m.damage.dn50 == 0.036 and m.damage.slope == "2"
+    assert m.damage.dn50 == 0.036 and m.damage.slope == "2" and m.damage.slope_origin == (0.1, 0.0)
+    assert m.damage.stretch == (-0.2, 0.2) and m.damage.active_zone == (5.0, 3.0) and not m.damage.fit_slope
 
 
 @pytest.mark.parametrize("text, message", [
@@ -52,6 +54,11 @@ def test_pair_tables_reference_and_overrides(folder):
     ('pairs = "pairs"\ncolour = 1\n', "unknown key(s) colour"),
     ('pairs = "pairs"\n[damage]\ndn50 = 0.03\nslope = "steep"\nswl = 0.1\n', "[damage] slope 'steep' does not parse"),
     ('pairs = "pairs"\n[damage]\ndn50 = 0.03\n', "[damage] needs slope"),
+    ('pairs = "pairs"\n[damage]\ndn50 = 0.03\nslope = 2\nswl = 0.1\n', "exactly one of slope_origin"),
+    ('pairs = "pairs"\n[damage]\ndn50 = 0.03\nslope = 2\nswl = 0.1\nslope_origin = [0, 0]\nfit_slope = true\n',
+     "exactly one of slope_origin"),
+    ('pairs = "pairs"\n[damage]\ndn50 = 0.03\nslope = 2\nswl = 0.1\nfit_slope = true\nstretch = [1]\n',
+     "stretch must be a list of two numbers"),
     ('[[pair]]\ntest = "T"\nstage = "I"\nleft = "a.png"\nright = "b.png"\n' * 2, "listed twice"),
     ('[[pair]]\ntest = "T/1"\nstage = "I"\nleft = "a.png"\nright = "b.png"\n', "may hold only letters"),
     ('[[pair]]\ntest = "T"\nstage = "I"\nleft = "a.png"\n', "needs right"),

@@ -145,10 +145,10 @@ def test_grid_and_damage_broken_input(files, tmp_path, capfd):
                        ("left.png", "cannot be read")):
         _check(capfd, main(["grid", str(files / name), "-o", str(out / "dem.npz")]), text, out)
         code = main(["damage", str(files / "survey.npz"), str(files / name), "--dn50", "0.036", "--slope", "1:2",
-                     "--swl", str(LEVEL), "-o", str(out / "report")])
+                     "--swl", str(LEVEL), "--slope-origin", "-0.45", "0", "-o", str(out / "report")])
         _check(capfd, code, text, out)
     code = main(["damage", str(files / "survey.npz"), str(files / "elsewhere.npz"), "--dn50", "0.036", "--slope", "2",
-                 "--swl", str(LEVEL), "-o", str(out / "report")])
+                 "--swl", str(LEVEL), "--slope-origin", "-0.45", "0", "-o", str(out / "report")])
     _check(capfd, code, "do not overlap", out)
     code = main(["grid", str(files / "survey.npz"), "--spacing", "-1", "-o", str(out / "dem.npz")])
     _check(capfd, code, "--spacing must be positive", out)
@@ -166,7 +166,7 @@ def test_demo_and_incidence_report_broken_input(tmp_path, capfd):
 
 def _manifest(path, rig, pairs, extra=""):
     lines = [f'rig = "{rig}"', f"water_level = {LEVEL}", extra,
-             "[damage]", "dn50 = 0.036", 'slope = "1:2"', f"swl = {LEVEL}"]
+             "[damage]", "dn50 = 0.036", 'slope = "1:2"', f"swl = {LEVEL}", "slope_origin = [-0.45, 0.0]"]
     for i, (left, right) in enumerate(pairs):
         lines += ["[[pair]]", 'test = "T1"', f'stage = "S{i}"', f'left = "{left}"', f'right = "{right}"']
     path.write_text("\n".join(lines) + "\n")
