@@ -30,7 +30,7 @@ class CameraCalibration:
 
     **Fields:** `K` (3, 3) pixels; `dist` (5,) OpenCV order; `rms_px` overall reprojection RMS;
     `view_rms_px` (n_views,) per view; `views` indices (into the input list) of the views used;
-    `dropped` indices of views dropped as outliers.
+    `dropped` indices of views dropped as outliers; `focal_std_px` OpenCV's standard deviation of fx.
     """
 
     K: np.ndarray
@@ -39,6 +39,7 @@ class CameraCalibration:
     view_rms_px: np.ndarray
     views: list[int]
     dropped: list[int]
+    focal_std_px: float = float("nan")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +69,12 @@ class StereoCalibration:
     @property
     def baseline_m(self) -> float:
         return float(np.linalg.norm(self.T))
+
+    @property
+    def focal_std_rel(self) -> float:
+        """The larger of the two cameras' relative focal-length standard deviations (from their own calibrations):
+        the relative uncertainty of every distance measured from the cameras."""
+        return float(max(self.left.focal_std_px / self.left.K[0, 0], self.right.focal_std_px / self.right.K[0, 0]))
 
 
 def _view_errors(board, detections, K, dist, rvecs, tvecs):
@@ -104,7 +111,8 @@ def calibrate_camera(
         obj = [board.corners[detections[i].ids].astype(np.float32) for i in views]
         img = [detections[i].pixels.astype(np.float32) for i in views]
         K0 = np.array([[1.0, 0.0, (image_size[0] - 1) / 2], [0.0, 1.0, (image_size[1] - 1) / 2], [0.0, 0.0, 1.0]])
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, image_size, K0, None, flags=flags)
+        rms, K, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(obj, img, image_size, K0, None,
+                                                                                       flags=flags)
         errs = _view_errors(board, [detections[i] for i in views], K, dist, rvecs, tvecs)
         if not drop_outliers or attempt == 1:
             break
@@ -116,7 +124,9 @@ def calibrate_camera(
             log.info("%s: view %d dropped (RMS %.2f px > %.2f px)", name, v, errs[views.index(v)], limit)
         dropped = bad
         views = [v for v in views if v not in bad]
-    return CameraCalibration(K, dist.ravel()[:5].copy(), float(rms), errs, views, dropped)
+    std = np.asarray(std_intrinsics).ravel()
+    # With square pixels OpenCV fits fy and ties fx to it: its standard deviation is fy's.
+    return CameraCalibration(K, dist.ravel()[:5].copy(), float(rms), errs, views, dropped, float(max(std[0], std[1])))
 
 
 def _fuller_distortion_needed(detections, board, image_size, drop_outliers, name) -> bool:

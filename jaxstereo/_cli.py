@@ -91,6 +91,7 @@ def _cmd_calibrate(args) -> int:
         "rms_stereo_px": stereo.rms_px,
         "baseline_m": stereo.baseline_m,
         "distortion_model": stereo.distortion_model,
+        "focal_std_rel": stereo.focal_std_rel,
         "world_frame": report,
     }
     rig = rig.__class__(rig.left, rig.right, None, calibration)
@@ -99,7 +100,8 @@ def _cmd_calibrate(args) -> int:
         ("views used (left / right / pairs)", f"{len(stereo.left.views)} / {len(stereo.right.views)} / {len(stereo.pairs)}"),
         ("RMS left / right / stereo (px)", f"{stereo.left.rms_px:.3f} / {stereo.right.rms_px:.3f} / {stereo.rms_px:.3f}"),
         ("baseline (m)", f"{stereo.baseline_m:.5f}"),
-        ("focal length left / right (px)", f"{stereo.left.K[0, 0]:.2f} / {stereo.right.K[0, 0]:.2f}"),
+        ("focal length left / right (px)", f"{stereo.left.K[0, 0]:.2f} / {stereo.right.K[0, 0]:.2f} "
+                                           f"(+/- {100 * stereo.focal_std_rel:.3f} %)"),
         ("distortion model", stereo.distortion_model),
         ("world frame from", report["pose_from"]),
         ("camera heights above z = 0 (m)", f"{heights[0]:.4f} / {heights[1]:.4f}"),
@@ -269,8 +271,12 @@ def _read_control_points(path):
     return data[:, 0:2], data[:, 2:4], data[:, 4:7]
 
 
+MIN_DENSE_CORRESPONDENCES = 100  # below this many dense matches, refine falls back to SIFT
+
+
 def _cmd_refine(args) -> int:
     from ._images import check_pair, read_image
+    from ._correspondences import dense_correspondences
     from ._refine import find_correspondences, refine_rig
     from ._rig import load_rig, save_rig
 
@@ -295,14 +301,23 @@ def _cmd_refine(args) -> int:
                 raise JaxStereoError(f"control DEM {item!r} holds no heights")
         else:
             raise JaxStereoError(f"--control {item!r}: use 'floor', a DEM or survey .npz, or a control-points .csv")
-    pl, pr = find_correspondences(left, right, args.max_points)
-    print(f"refine: {len(pl)} SIFT correspondences")
+    if args.matches == "dense":
+        pl, pr = dense_correspondences(left, right, rig, args.water_level_guess, args.max_points)
+        source = "the dense matching"
+    if args.matches == "sift" or len(pl) < MIN_DENSE_CORRESPONDENCES:
+        if args.matches == "dense":
+            print(f"refine: only {len(pl)} dense matches; SIFT instead")
+        pl, pr = find_correspondences(left, right, args.max_points)
+        source = "SIFT"
+    print(f"refine: {len(pl)} correspondences from {source}")
     result = refine_rig(rig, pl, pr, args.water_level_guess, refine=refine, control=control,
                         floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points)
     print(f"  {result.n_correspondences} consistent with the rig, {result.n_control} control terms, "
           f"{result.steps} steps ({result.seconds:.1f} s)")
     for name, (value, std) in result.parameters.items():
         print(f"  {name:<34} {value:+.5f} +/- {std:.5f}")
+    if "water" in refine:
+        print(f"  level std: fit {1e3 * result.level_std_fit_m:.2f} mm, world frame {1e3 * result.level_std_frame_m:.2f} mm")
     print(f"  reprojection RMS before / after    {result.rms_before_px:.3f} / {result.rms_after_px:.3f} px")
     if control is not None:
         print(f"  control surface std (from the data) {1e3 * result.surface_sigma_m:.2f} mm, "
@@ -497,6 +512,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="world x range where the floor is bare (e.g. in front of the toe)")
     p.add_argument("--refine", default="water", help="comma list of water, tilt, right-pose (default water)")
     p.add_argument("--max-points", type=int, default=2000, help="correspondences to use (default 2000)")
+    p.add_argument("--matches", choices=["dense", "sift"], default="dense",
+                   help="correspondences from the dense matching, spread over the image (default; SIFT when it "
+                        "finds too few), or SIFT features")
     p.add_argument("--keep-guess", action="store_true",
                    help="when the images cannot determine the level, write the rig at the guessed level (said so in "
                         "its provenance) instead of refusing")

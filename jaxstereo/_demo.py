@@ -29,7 +29,8 @@ from ._io import write_text_atomic
 from ._plots import new_figure, plot_calibration_errors, save_figure
 from ._pose import Pose
 from ._reconstruct import ReconstructOptions, reconstruct
-from ._refine import find_correspondences, refine_rig
+from ._correspondences import dense_correspondences
+from ._refine import refine_rig
 from ._render import render_view
 from ._rig import Rig, save_rig
 from ._scenes import Breakwater, Damage, build_scene, scene_to_json
@@ -80,7 +81,8 @@ def run_demo(out_dir="jaxstereo-demo", log=print) -> dict:
         stereo = calibrate_stereo(detect_all(left_imgs, board), detect_all(right_imgs, board), board, SIZE,
                                   origin=origin_det)
         rig, frame = world_frame_rig(stereo, board, *origin_det)
-        rig = Rig(rig.left, rig.right, None, {"rms_stereo_px": stereo.rms_px, "world_frame": frame})
+        rig = Rig(rig.left, rig.right, None, {"rms_stereo_px": stereo.rms_px, "world_frame": frame,
+                                              "focal_std_rel": stereo.focal_std_rel})
         save_rig(rig, out / "rig.json")
         plot_calibration_errors(stereo, out / "calibration_errors.png")
         summary["calibration"] = {
@@ -104,12 +106,14 @@ def run_demo(out_dir="jaxstereo-demo", log=print) -> dict:
 
         step(f"refining the water level from the stage I pair (gauge reading {GAUGE} m), floor as control")
         bw = stages[0][1]
-        pl, pr = find_correspondences(*stages[0][2], 2000)
+        pl, pr = dense_correspondences(*stages[0][2], rig, GAUGE, 2000)
         refined = refine_rig(rig, pl, pr, GAUGE, refine=("water",), control="floor",
                              floor_region=(-0.75, bw.toe_x_m - 2 * bw.dn50_m))
         level, level_std = refined.parameters["water level (m)"]
         save_rig(refined.rig, out / "rig_wet.json")
         summary["refine"] = {"water_level_m": level, "std_m": level_std, "true_m": SWL, "gauge_m": GAUGE,
+                             "std_fit_m": refined.level_std_fit_m, "std_frame_m": refined.level_std_frame_m,
+                             "control_terms": refined.n_control,
                              "determined": refined.level_determined, "rms_before_px": refined.rms_before_px,
                              "rms_after_px": refined.rms_after_px, "correspondences": refined.n_correspondences}
 
@@ -174,9 +178,12 @@ def _report_markdown(s: dict) -> str:
         f"| camera height (m) | {c['camera_height_m']:.4f} | {c['camera_height_true_m']:.4f} |", "",
         "![calibration errors](calibration_errors.png)", "",
         "## Water level from the wet images", "",
-        f"Gauge reading {r['gauge_m']:.3f} m; refined {r['water_level_m']:.4f} +/- {r['std_m'] * 1e3:.2f} mm "
-        f"(truth {r['true_m']:.3f} m); reprojection RMS {r['rms_before_px']:.3f} -> {r['rms_after_px']:.3f} px over "
-        f"{r['correspondences']} correspondences" + ("" if r["determined"] else " - NOT DETERMINED") + ".", "",
+        f"Gauge reading {r['gauge_m']:.3f} m; refined {r['water_level_m']:.4f} m +/- {r['std_m'] * 1e3:.2f} mm "
+        f"(the fit's {r['std_fit_m'] * 1e3:.2f} mm and the world frame's {r['std_frame_m'] * 1e3:.2f} mm) from "
+        f"{r['correspondences']} dense correspondences, {r['control_terms']} of them on the floor in front of the toe"
+        + ("" if r["determined"] else " - NOT DETERMINED") + f". Truth {r['true_m']:.3f} m: the error is "
+        f"{(r['water_level_m'] - r['true_m']) * 1e3:+.2f} mm, "
+        f"{abs(r['water_level_m'] - r['true_m']) / r['std_m']:.1f} standard deviations.", "",
         "## Surveys", "", "| stage | points | submerged | seconds (match / triangulate) |", "|---|---:|---:|---:|",
     ]
     for name, v in s["surveys"].items():

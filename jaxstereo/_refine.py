@@ -35,7 +35,7 @@ log = logging.getLogger("jaxstereo")
 PARAMETERS = ("water", "tilt", "right-pose")
 MIN_CORRESPONDENCES = 12
 # A parameter whose standard deviation exceeds this is reported as not determined.
-LEVEL_STD_LIMIT_M = 0.002
+LEVEL_STD_LIMIT_M = 0.001
 
 
 def find_correspondences(left_image: np.ndarray, right_image: np.ndarray, max_points: int = 4000,
@@ -171,12 +171,15 @@ class RefineResult:
     """Outcome of `refine_rig`.
 
     **Fields:** `rig` the refined rig (interface set); `parameters` name -> (value, standard deviation)
-    in user units (level m, tilt deg, rotation deg, translation mm); `level_determined` whether the water
-    level's standard deviation is below 2 mm; `rms_before_px`, `rms_after_px` reprojection RMS of the
-    inliers; `n_correspondences`, `n_control`; `steps` solver steps; `result` the last solve's outcome in
-    words ("converged", "stopped at its step limit", "diverged", ...), `converged` whether every solve
-    converged; `seconds`; `surface_sigma_m` the standard deviation given to the floor or DEM control terms
-    (the larger of the one asked for and the points' own scatter about the surface), metres.
+    in user units (level m, tilt deg, rotation deg, translation mm); for the level the standard deviation
+    combines the fit's (`level_std_fit_m`: the larger of the Gauss-Newton one, scaled by the residuals' own
+    noise, and a jackknife over 16 blocks of the image, which sees errors correlated in space) and the world
+    frame's (`level_std_frame_m`: the calibration's scale, see `scale_level_std`); `level_determined` whether that
+    standard deviation is below 1 mm (`LEVEL_STD_LIMIT_M`) and every solve converged; `rms_before_px`, `rms_after_px`
+    reprojection RMS of the inliers; `n_correspondences`, `n_control`; `steps` solver steps; `result` the
+    last solve's outcome in words ("converged", "stopped at its step limit", "diverged", ...), `converged`
+    whether every solve converged; `seconds`; `surface_sigma_m` the standard deviation given to the floor
+    or DEM control terms (the larger of the one asked for and the points' own scatter about the surface).
     """
 
     rig: Rig
@@ -191,6 +194,8 @@ class RefineResult:
     seconds: float
     surface_sigma_m: float
     converged: bool = True
+    level_std_fit_m: float = float("nan")
+    level_std_frame_m: float = 0.0
 
 
 def _check_which(refine) -> tuple[str, ...]:
@@ -201,6 +206,207 @@ def _check_which(refine) -> tuple[str, ...]:
     if not which:
         raise JaxStereoError("nothing to refine")
     return which
+
+
+_SOLVER = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
+_NO_GCP = (np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)))
+
+
+def _objective(theta, problem):
+    """Residuals in units of their standard deviations, through a Cauchy loss (module level: compiled once
+    per problem shape, not once per call)."""
+    args, weights, scale = problem
+    return _robust(_residuals(theta, args) * weights, scale)
+
+
+_jacobian = jax.jit(jax.jacfwd(_objective))
+_triangulate_jit = jax.jit(_triangulate_any)
+_residuals_jit = jax.jit(_residuals)
+
+
+def _padded_size(n: int) -> int:
+    """Correspondences are padded to 256, 512, 1024, ... so that calls of similar size share a compilation."""
+    size = 256
+    while size < n:
+        size *= 2
+    return size
+
+
+def _pad(a: np.ndarray, size: int) -> np.ndarray:
+    """`a` (n, k) padded to (size, k) with copies of its first row (finite, weighted zero)."""
+    return np.concatenate([a, np.repeat(a[:1], size - a.shape[0], axis=0)]) if a.shape[0] < size else a
+
+
+def _gate(model, guess, pl, pr):
+    """Correspondences consistent with the refracted epipolar geometry of the guess (within 5 px: the guess is
+    rough), and their points at the guess."""
+    size = _padded_size(len(pl))
+    a, b = jnp.asarray(_pad(pl, size)), jnp.asarray(_pad(pr, size))
+    points = np.asarray(_triangulate_jit(model.left, model.right, guess, a, b))[: len(pl)]
+    args = (model, a, b, jnp.zeros(size, bool), jnp.zeros(size), *(jnp.asarray(g) for g in _NO_GCP))
+    err = np.asarray(_residuals_jit(jnp.zeros(model.size), args))[: 4 * size]
+    err = np.linalg.norm(err.reshape(2, -1, 2), axis=-1).max(axis=0)[: len(pl)]
+    inlier = np.isfinite(err) & (err < 5.0) & np.all(np.isfinite(points), axis=1)
+    if inlier.sum() < MIN_CORRESPONDENCES:
+        raise JaxStereoError(f"only {int(inlier.sum())} correspondences agree with the rig's epipolar geometry; "
+                             f"at least {MIN_CORRESPONDENCES} are needed")
+    return inlier, points
+
+
+def _initial_control(control, points, in_region, floor_z, floor_band_m):
+    """Control mask and heights for the first solve: the floor's lowest points, or the DEM's heights."""
+    if isinstance(control, DEM):
+        heights = dem_heights(control, points[:, :2])
+        mask = in_region & np.isfinite(heights)
+        if not mask.any():
+            p_lo, p_hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+            raise JaxStereoError(
+                f"the control DEM (x {control.x[0]:.3f} to {control.x[-1]:.3f} m, y {control.y[0]:.3f} to "
+                f"{control.y[-1]:.3f} m) does not overlap the correspondences (x {p_lo[0]:.3f} to {p_hi[0]:.3f} m, "
+                f"y {p_lo[1]:.3f} to {p_hi[1]:.3f} m): is it in the same world frame?")
+        return mask, np.where(mask, heights, 0.0)
+    heights = np.full(len(points), float(floor_z))
+    if control == "floor":
+        lowest = np.percentile(points[in_region, 2], 2) if in_region.any() else np.inf
+        return in_region & (points[:, 2] <= lowest + floor_band_m), heights
+    if control is None:
+        return np.zeros(len(points), bool), heights
+    raise JaxStereoError(f"unknown control {control!r}: use 'floor', a DEM or None")
+
+
+@dataclasses.dataclass(frozen=True)
+class _Data:
+    """What a solve needs: the model, the (unpadded) correspondences and control, and the weighting."""
+
+    model: _Model
+    pl: np.ndarray
+    pr: np.ndarray
+    gcp: tuple
+    pixel_sigma: float
+    control_sigma_m: float
+    robust_sigmas: float
+
+    def problem(self, mask, heights, surface_sigma):
+        """The padded problem `(args, weights, scale)` for `_objective`."""
+        n, size, k = len(self.pl), _padded_size(len(self.pl)), self.gcp[0].shape[0]
+        live = np.arange(size) < n
+        pixel = np.where(live, 1.0 / self.pixel_sigma, 0.0)
+        weights = np.concatenate([np.tile(pixel, 4), np.full(size, 1.0 / surface_sigma),
+                                  np.full(3 * k, 1.0 / self.control_sigma_m)])
+        args = (self.model, jnp.asarray(_pad(self.pl, size)), jnp.asarray(_pad(self.pr, size)),
+                jnp.asarray(np.pad(mask, (0, size - n))), jnp.asarray(np.pad(heights, (0, size - n))),
+                *(jnp.asarray(g) for g in self.gcp))
+        return args, jnp.asarray(weights), jnp.asarray(self.robust_sigmas)
+
+    def points(self, theta):
+        right, interface = self.model.unpack(theta)
+        size = _padded_size(len(self.pl))
+        pts = _triangulate_jit(self.model.left, right, interface, jnp.asarray(_pad(self.pl, size)),
+                               jnp.asarray(_pad(self.pr, size)))
+        return np.asarray(pts)[: len(self.pl)]
+
+
+def _solve(problem, theta, max_steps):
+    sol = optx.least_squares(_objective, _SOLVER, theta, problem, max_steps=max_steps, throw=False)
+    return sol.value, result_in_words(sol.result), int(sol.stats["num_steps"])
+
+
+def _reselect(data: _Data, theta, control, in_region, heights, base_sigma, surface_sigma, floor_band_m):
+    """Control chosen again at the refined geometry: points within 3 sigma of the surface, sigma the larger of
+    the given one and the points' own robust scatter about it (their depth noise: a tighter sigma would cut the
+    noise distribution and bias the level)."""
+    points = data.points(theta)
+    if isinstance(control, DEM):
+        heights = dem_heights(control, points[:, :2])
+    d = points[:, 2] - heights
+    candidates = in_region & np.isfinite(d)
+    if not isinstance(control, DEM):
+        candidates &= np.abs(d) <= max(floor_band_m, 3 * surface_sigma)
+    if candidates.sum() >= MIN_CORRESPONDENCES:
+        dc = d[candidates]
+        surface_sigma = max(base_sigma, 1.4826 * float(np.median(np.abs(dc - np.median(dc)))))
+    mask = candidates & (np.abs(d) <= 3 * surface_sigma)
+    if not mask.any():
+        raise JaxStereoError("no correspondence lies on the control surface at the solution: the control "
+                             "does not fit these images (wrong DEM, floor region or world frame?)")
+    return mask, np.where(mask, heights, 0.0), surface_sigma
+
+
+def _standard_deviations(theta, problem, n_used: int):
+    """Gauss-Newton standard deviations at the solution, scaled by the residuals' own variance (`n_used`
+    residuals carry data; the rest are zero by construction)."""
+    J = np.asarray(_jacobian(theta, problem))
+    r = np.asarray(_objective(theta, problem))
+    dof = max(1, n_used - theta.size)
+    sigma2 = float(r @ r) / dof
+    try:
+        return np.sqrt(np.maximum(np.diag(np.linalg.inv(J.T @ J)) * sigma2, 0.0))
+    except np.linalg.LinAlgError:
+        return np.full(theta.size, np.inf)
+
+
+JACKKNIFE_BLOCKS = 4  # per image side: 16 spatial blocks
+
+
+def _block_jackknife_std(theta, problem, pl, image_size):
+    """Standard deviations from a linearised jackknife over spatial blocks of the left image (4 x 4): each
+    block left out in turn, the solution moved by one Gauss-Newton step. Match errors on rough, refracted
+    texture are correlated over a neighbourhood; the Gauss-Newton covariance, which takes them as
+    independent, then says too little, while the spread between blocks shows it."""
+    J = np.asarray(_jacobian(theta, problem))
+    r = np.asarray(_objective(theta, problem))
+    size = _padded_size(len(pl))
+    w, h = image_size
+    block = (np.minimum(pl[:, 0] * JACKKNIFE_BLOCKS // w, JACKKNIFE_BLOCKS - 1) * JACKKNIFE_BLOCKS
+             + np.minimum(pl[:, 1] * JACKKNIFE_BLOCKS // h, JACKKNIFE_BLOCKS - 1)).astype(int)
+    rows_of = lambda k: np.concatenate([j * size + np.nonzero(block == k)[0] for j in range(5)])  # noqa: E731
+    H, g = J.T @ J, J.T @ r
+    estimates = []
+    for k in np.unique(block):
+        rows = rows_of(k)
+        Jb, rb = J[rows], r[rows]
+        try:
+            estimates.append(-np.linalg.solve(H - Jb.T @ Jb, g - Jb.T @ rb))
+        except np.linalg.LinAlgError:
+            return np.full(theta.size, np.inf)
+    estimates = np.asarray(estimates)
+    n = len(estimates)
+    if n < 3:
+        return np.zeros(theta.size)
+    return np.sqrt((n - 1) / n * np.sum((estimates - estimates.mean(axis=0)) ** 2, axis=0))
+
+
+def _parameters(model, which, theta, std, frame_std_m):
+    """Refined values and standard deviations in user units."""
+    right, interface = model.unpack(theta)
+    values = np.asarray(theta)
+    params, k = {}, 0
+    if "water" in which:
+        params["water level (m)"] = (float(interface.level), float(np.hypot(std[k] * 1e-2, frame_std_m)))
+        k += 1
+    if "tilt" in which:
+        t = np.asarray(model.tilt0) + values[k : k + 2] * 1e-3
+        params["tilt x (deg)"] = (float(np.rad2deg(t[0])), float(np.rad2deg(std[k] * 1e-3)))
+        params["tilt y (deg)"] = (float(np.rad2deg(t[1])), float(np.rad2deg(std[k + 1] * 1e-3)))
+        k += 2
+    if "right-pose" in which:
+        for i, axis in enumerate("xyz"):
+            params[f"right rotation {axis} (deg)"] = (float(np.rad2deg(values[k + i] * 1e-3)),
+                                                      float(np.rad2deg(std[k + i] * 1e-3)))
+        for i, axis in enumerate("12"):
+            params[f"right shift across baseline {axis} (mm)"] = (float(values[k + 3 + i]), float(std[k + 3 + i]))
+    return right, interface, params
+
+
+def scale_level_std(rig: Rig, level: float) -> float:
+    """The calibration's share of a level's standard deviation (m): the focal length's relative standard
+    deviation (`calibration["focal_std_rel"]`, 0 when unknown) times the cameras' mean height above the water.
+    Every distance measured from the cameras scales with the focal length: a level consistent with the
+    images is as uncertain, measured from the cameras, as that scale."""
+    rel = float(rig.calibration.get("focal_std_rel", 0.0) or 0.0) if isinstance(rig.calibration, dict) else 0.0
+    rel = rel if np.isfinite(rel) else 0.0
+    height = np.mean([float(np.asarray(c.center)[2]) - level for c in (rig.left, rig.right)])
+    return rel * max(height, 0.0)
 
 
 @float64
@@ -248,138 +454,56 @@ def refine_rig(
     model, guess = _build_model(rig, level_guess, which)
     check_camera_above(rig.left.center, guess, "left camera")
     check_camera_above(rig.right.center, guess, "right camera")
-    tilt0 = model.tilt0
-
-    # Inliers: consistent with the refracted epipolar geometry of the guess (loose: the guess is rough).
-    pl_j, pr_j = jnp.asarray(pl), jnp.asarray(pr)
-    points0 = np.asarray(_triangulate_any(rig.left, rig.right, guess, pl_j, pr_j))
-    no_gcp = (jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros((0, 3)))
-    err0 = np.asarray(_residuals(jnp.zeros(model.size), (model, pl_j, pr_j, jnp.zeros(len(pl), bool),
-                                                         jnp.zeros(len(pl)), *no_gcp))[: 4 * len(pl)])
-    err0 = np.linalg.norm(err0.reshape(2, -1, 2), axis=-1).max(axis=0)
-    inlier = np.isfinite(err0) & (err0 < 5.0) & np.all(np.isfinite(points0), axis=1)
-    if inlier.sum() < MIN_CORRESPONDENCES:
-        raise JaxStereoError(f"only {int(inlier.sum())} correspondences agree with the rig's epipolar geometry; "
-                             f"at least {MIN_CORRESPONDENCES} are needed")
+    inlier, points0 = _gate(model, guess, pl, pr)
     pl, pr, points0 = pl[inlier], pr[inlier], points0[inlier]
-    mask = np.zeros(len(pl), bool)
     in_region = np.ones(len(pl), bool)
     if floor_region is not None:
         in_region = (points0[:, 0] >= floor_region[0]) & (points0[:, 0] <= floor_region[1])
-    control_z = np.full(len(pl), float(floor_z))
-    surface_sigma = floor_sigma_m
-    if isinstance(control, DEM):
-        control_z = dem_heights(control, points0[:, :2])
-        mask = in_region & np.isfinite(control_z)
-        if not mask.any():
-            p_lo, p_hi = points0[:, :2].min(axis=0), points0[:, :2].max(axis=0)
-            raise JaxStereoError(
-                f"the control DEM (x {control.x[0]:.3f} to {control.x[-1]:.3f} m, y {control.y[0]:.3f} to "
-                f"{control.y[-1]:.3f} m) does not overlap the correspondences (x {p_lo[0]:.3f} to {p_hi[0]:.3f} m, "
-                f"y {p_lo[1]:.3f} to {p_hi[1]:.3f} m): is it in the same world frame?")
-        control_z = np.where(mask, control_z, 0.0)
-        surface_sigma = dem_sigma_m
-    elif control == "floor":
-        lowest = np.percentile(points0[in_region, 2], 2) if in_region.any() else np.inf
-        mask = in_region & (points0[:, 2] <= lowest + floor_band_m)
-    elif control is not None:
-        raise JaxStereoError(f"unknown control {control!r}: use 'floor', a DEM or None")
+    mask, heights = _initial_control(control, points0, in_region, floor_z, floor_band_m)
+    gcp = _NO_GCP
     if control_points is not None:
-        gcp = tuple(jnp.asarray(np.asarray(a, dtype=np.float64).reshape(-1, k))
-                    for a, k in zip(control_points, (2, 2, 3)))
+        gcp = tuple(np.asarray(a, dtype=np.float64).reshape(-1, k) for a, k in zip(control_points, (2, 2, 3)))
         if not (gcp[0].shape[0] == gcp[1].shape[0] == gcp[2].shape[0]):
             raise JaxStereoError("control points: left pixels, right pixels and coordinates differ in number")
-    else:
-        gcp = no_gcp
-    args = (model, jnp.asarray(pl), jnp.asarray(pr), jnp.asarray(mask), jnp.asarray(control_z), *gcp)
-    n_reproj = 4 * len(pl)
-
-    def weights_for(sigma):
-        return jnp.concatenate([jnp.full(n_reproj, 1.0 / pixel_sigma), jnp.full(len(pl), 1.0 / sigma),
-                                jnp.full(3 * gcp[0].shape[0], 1.0 / control_sigma_m)])
-
-    def fn(theta, problem):
-        # Residuals in units of their standard deviations, then a Cauchy loss at `robust_sigmas`.
-        a, weights = problem
-        return _robust(_residuals(theta, a) * weights, robust_sigmas)
-
+    data = _Data(model, pl, pr, gcp, pixel_sigma, control_sigma_m, robust_sigmas)
+    base_sigma = dem_sigma_m if isinstance(control, DEM) else floor_sigma_m
+    surface_sigma = base_sigma
     theta0 = jnp.zeros(model.size)
-    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
-    sol = optx.least_squares(fn, solver, theta0, (args, weights_for(surface_sigma)), max_steps=max_steps, throw=False)
-    outcomes = [result_in_words(sol.result)]
-    theta = sol.value
-    base_sigma = surface_sigma
+    theta, outcome, steps = _solve(data.problem(mask, heights, surface_sigma), theta0, max_steps)
+    outcomes = [outcome]
     if control is not None:
-        # Re-select the control with the refined geometry and solve again, twice. The control's standard
-        # deviation is the larger of the given one and the scatter of the points about the surface (their
-        # depth noise from the pixels): too tight a value would cut the noise distribution and bias the level.
         for _ in range(2):
-            right, interface = model.unpack(theta)
-            points = np.asarray(_triangulate_any(model.left, right, interface, args[1], args[2]))
-            if isinstance(control, DEM):
-                control_z = dem_heights(control, points[:, :2])
-            d = points[:, 2] - control_z
-            candidates = in_region & np.isfinite(d)
-            if not isinstance(control, DEM):
-                candidates &= np.abs(d) <= max(floor_band_m, 3 * surface_sigma)
-            if candidates.sum() >= MIN_CORRESPONDENCES:
-                dc = d[candidates]
-                surface_sigma = max(base_sigma, 1.4826 * float(np.median(np.abs(dc - np.median(dc)))))
-            mask = candidates & (np.abs(d) <= 3 * surface_sigma)
-            if not mask.any():
-                raise JaxStereoError("no correspondence lies on the control surface at the solution: the control "
-                                     "does not fit these images (wrong DEM, floor region or world frame?)")
-            args = (model, args[1], args[2], jnp.asarray(mask), jnp.asarray(np.where(mask, control_z, 0.0)), *args[5:])
-            sol = optx.least_squares(fn, solver, theta, (args, weights_for(surface_sigma)), max_steps=max_steps,
-                                     throw=False)
-            outcomes.append(result_in_words(sol.result))
-            theta = sol.value
-    problem = (args, weights_for(surface_sigma))
-    raw_before = np.asarray(_residuals(theta0, args))[:n_reproj]
-    raw_after = np.asarray(_residuals(theta, args))[:n_reproj]
-    rms_before = float(np.sqrt(np.mean(raw_before**2) * 2))
-    rms_after = float(np.sqrt(np.mean(raw_after**2) * 2))
-
-    # Gauss-Newton covariance at the solution, scaled by the residual variance.
-    J = np.asarray(jax.jacfwd(fn)(theta, problem))
-    r = np.asarray(fn(theta, problem))
-    dof = max(1, r.size - theta.size)
-    sigma2 = float(r @ r) / dof
-    try:
-        cov = np.linalg.inv(J.T @ J) * sigma2
-        std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    except np.linalg.LinAlgError:
-        std = np.full(theta.size, np.inf)
+            mask, heights, surface_sigma = _reselect(data, theta, control, in_region, heights, base_sigma,
+                                                     surface_sigma, floor_band_m)
+            theta, outcome, steps = _solve(data.problem(mask, heights, surface_sigma), theta, max_steps)
+            outcomes.append(outcome)
+    problem = data.problem(mask, heights, surface_sigma)
+    args = problem[0]
+    n_reproj = 4 * _padded_size(len(pl))
+    live = np.tile(np.arange(_padded_size(len(pl))) < len(pl), 4)
+    rms_before, rms_after = (float(np.sqrt(np.mean(np.asarray(_residuals_jit(t, args))[:n_reproj][live] ** 2) * 2))
+                             for t in (theta0, theta))
+    n_used = 4 * len(pl) + int(mask.sum()) + 3 * gcp[0].shape[0]
+    std = _standard_deviations(theta, problem, n_used)
     right, interface = model.unpack(theta)
-    params = {}
-    k = 0
-    values = np.asarray(theta)
-    if "water" in which:
-        params["water level (m)"] = (float(interface.level), float(std[k] * 1e-2))
-        k += 1
-    if "tilt" in which:
-        t = np.asarray(tilt0) + values[k : k + 2] * 1e-3
-        params["tilt x (deg)"] = (float(np.rad2deg(t[0])), float(np.rad2deg(std[k] * 1e-3)))
-        params["tilt y (deg)"] = (float(np.rad2deg(t[1])), float(np.rad2deg(std[k + 1] * 1e-3)))
-        k += 2
-    if "right-pose" in which:
-        for i, axis in enumerate("xyz"):
-            params[f"right rotation {axis} (deg)"] = (float(np.rad2deg(values[k + i] * 1e-3)),
-                                                      float(np.rad2deg(std[k + i] * 1e-3)))
-        for i, axis in enumerate("12"):
-            params[f"right shift across baseline {axis} (mm)"] = (float(values[k + 3 + i]), float(std[k + 3 + i]))
+    std = np.maximum(std, _block_jackknife_std(theta, problem, pl, rig.image_size))
+    frame_std = scale_level_std(rig, float(interface.level)) if "water" in which else 0.0
+    right, interface, params = _parameters(model, which, theta, std, frame_std)
     level_std = params.get("water level (m)", (0.0, 0.0))[1]
     converged = all(o == "converged" for o in outcomes)
     determined = bool(np.isfinite(level_std) and level_std < LEVEL_STD_LIMIT_M and converged)
+    fit_std = float(std[0] * 1e-2) if "water" in which else float("nan")
     calibration = dict(rig.calibration)
     calibration["refine"] = {"parameters": {k_: list(v) for k_, v in params.items()},
+                             "level_std_fit_m": fit_std, "level_std_frame_m": frame_std,
                              "level_determined": determined, "rms_before_px": rms_before, "rms_after_px": rms_after,
-                             "correspondences": int(len(pl)), "control_points": int(mask.sum()),
-                             "surface_sigma_m": surface_sigma, "solver": outcomes[-1], "converged": converged}
+                             "correspondences": int(len(pl)),
+                             "control_points": int(mask.sum()), "surface_sigma_m": surface_sigma,
+                             "solver": outcomes[-1], "converged": converged}
     refined = Rig(rig.left, right, interface, calibration)
     return RefineResult(refined, params, determined, rms_before, rms_after, int(len(pl)),
-                        int(mask.sum()) + int(gcp[0].shape[0]),
-                        int(sol.stats["num_steps"]), outcomes[-1], time.perf_counter() - start, surface_sigma, converged)
+                        int(mask.sum()) + int(gcp[0].shape[0]), steps, outcomes[-1], time.perf_counter() - start,
+                        surface_sigma, converged, fit_std, frame_std)
 
 
 def dem_heights(dem: DEM, xy: np.ndarray) -> np.ndarray:
