@@ -220,6 +220,7 @@ def _objective(theta, problem):
 
 
 _jacobian = jax.jit(jax.jacfwd(_objective))
+_objective_jit = jax.jit(_objective)
 _triangulate_jit = jax.jit(_triangulate_any)
 _residuals_jit = jax.jit(_residuals)
 
@@ -332,15 +333,18 @@ def _reselect(data: _Data, theta, control, in_region, heights, base_sigma, surfa
     return mask, np.where(mask, heights, 0.0), surface_sigma
 
 
-def _standard_deviations(theta, problem, n_used: int):
-    """Gauss-Newton standard deviations at the solution, scaled by the residuals' own variance (`n_used`
-    residuals carry data; the rest are zero by construction)."""
+def _standard_deviations(theta, problem, groups):
+    """Gauss-Newton standard deviations at the solution, each group of residuals (reprojection, control terms,
+    control points: `groups` lists each one's row indices that carry data) scaled by its own variance, so
+    that numerous well-fitting reprojections do not vouch for a few scattered control terms."""
     J = np.asarray(_jacobian(theta, problem))
-    r = np.asarray(_objective(theta, problem))
-    dof = max(1, n_used - theta.size)
-    sigma2 = float(r @ r) / dof
+    r = np.asarray(_objective_jit(theta, problem))
+    scaled = np.zeros_like(J)
+    for rows in groups:
+        if rows.size:
+            scaled[rows] = J[rows] / np.sqrt(max(float(r[rows] @ r[rows]) / rows.size, 1e-300))
     try:
-        return np.sqrt(np.maximum(np.diag(np.linalg.inv(J.T @ J)) * sigma2, 0.0))
+        return np.sqrt(np.maximum(np.diag(np.linalg.inv(scaled.T @ scaled)), 0.0))
     except np.linalg.LinAlgError:
         return np.full(theta.size, np.inf)
 
@@ -354,7 +358,7 @@ def _block_jackknife_std(theta, problem, pl, image_size):
     texture are correlated over a neighbourhood; the Gauss-Newton covariance, which takes them as
     independent, then says too little, while the spread between blocks shows it."""
     J = np.asarray(_jacobian(theta, problem))
-    r = np.asarray(_objective(theta, problem))
+    r = np.asarray(_objective_jit(theta, problem))
     size = _padded_size(len(pl))
     w, h = image_size
     block = (np.minimum(pl[:, 0] * JACKKNIFE_BLOCKS // w, JACKKNIFE_BLOCKS - 1) * JACKKNIFE_BLOCKS
@@ -483,8 +487,10 @@ def refine_rig(
     live = np.tile(np.arange(_padded_size(len(pl))) < len(pl), 4)
     rms_before, rms_after = (float(np.sqrt(np.mean(np.asarray(_residuals_jit(t, args))[:n_reproj][live] ** 2) * 2))
                              for t in (theta0, theta))
-    n_used = 4 * len(pl) + int(mask.sum()) + 3 * gcp[0].shape[0]
-    std = _standard_deviations(theta, problem, n_used)
+    size = _padded_size(len(pl))
+    groups = [np.concatenate([j * size + np.arange(len(pl)) for j in range(4)]), 4 * size + np.nonzero(mask)[0],
+              5 * size + np.arange(3 * gcp[0].shape[0])]
+    std = _standard_deviations(theta, problem, groups)
     right, interface = model.unpack(theta)
     std = np.maximum(std, _block_jackknife_std(theta, problem, pl, rig.image_size))
     frame_std = scale_level_std(rig, float(interface.level)) if "water" in which else 0.0
