@@ -49,7 +49,7 @@ def _plain_opencv(left_path, right_path, rig: dict, out: Path) -> int:
     ds = [np.asarray(c["dist"][:5], float) for c in (rig["left"], rig["right"])]
     Rl, Rr = (np.asarray(rig[s]["R"], float) for s in ("left", "right"))
     tl, tr = (np.asarray(rig[s]["t"], float) for s in ("left", "right"))
-    Rrel, Trel = Rr @ Rl.T, tr - Rr @ Rl.T @ tl
+    Rrel, Trel = Rr @ Rl.T, (tr - Rr @ Rl.T @ tl).reshape(3, 1)
     R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(Ks[0], ds[0], Ks[1], ds[1], size, Rrel, Trel, alpha=0)
     maps = [cv2.initUndistortRectifyMap(K, d, Rx, P, size, cv2.CV_32FC1) for K, d, Rx, P in
             ((Ks[0], ds[0], R1, P1), (Ks[1], ds[1], R2, P2))]

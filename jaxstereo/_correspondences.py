@@ -65,7 +65,7 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
     interface: Interface = _interface_for(rig, level_guess)
     z_range = (-0.03, float(interface.level) + 0.4)
     rect = rectify(rig.left, rig.right, interface, "water")
-    _, _, disparity, search = _match(rect, rig, interface, left_image, right_image, z_range, ReconstructOptions())
+    _, _, disparity, search, _ = _match(rect, rig, interface, left_image, right_image, z_range, ReconstructOptions())
     offset = _row_offsets(rect, rig, interface, disparity, search)
     rl, rr, v, u = _pairs_from_disparity(disparity)
     if rl.shape[0] == 0:

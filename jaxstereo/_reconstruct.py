@@ -114,7 +114,7 @@ def _match(rect, rig, interface, left_image, right_image, z_range, options):
     colour = options.colour and rect_l.ndim == 3
     prepare = (lambda image: image) if colour else _grey
     disparity = sgbm_disparity(prepare(rect_l), prepare(rect_r), lo, num, options.match)
-    return rect_l, rect_r, disparity, (lo, num)
+    return rect_l, rect_r, disparity, (lo, num), maps[0]
 
 
 def _pairs_from_disparity(disparity):
@@ -145,9 +145,8 @@ def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera,
     `exact`: a match whose in-air point lies above the water is emerged; otherwise both rays are refracted
     exactly. `first-order`: under-water points from the virtual cameras' rays. `none`: all in air.
 
-    **Returns:** `(points, gap, submerged, ok, left_pixels, distance)`: world points (n, 3), ray gaps (n,)
-    metres, under water (n,), valid rays (n,), real left-image pixels (n, 2), distance from the left
-    camera (n,) metres.
+    **Returns:** `(points, gap, submerged, ok, distance)`: world points (n, 3), ray gaps (n,) metres, under
+    water (n,), valid rays (n,), distance from the left camera (n,) metres.
     """
     if model == "exact" or interface is None:
         points, gap, submerged, ok = triangulate_exact(rect, left_cam, right_cam, interface, rl, rr)
@@ -167,10 +166,8 @@ def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera,
             ok = ~submerged | (water[0][2] & water[1][2])
         else:
             submerged = interface.height_of(points) < 0
-    origin_l, dir_l, surface_l = rectified_rays(rect, left_cam, 0, rl)
-    left_pixels = left_cam.project(surface_l if rect.mode == "water" else origin_l + dir_l)
     distance = jnp.linalg.norm(points - left_cam.center, axis=-1)
-    return points, gap, submerged, ok, left_pixels, distance
+    return points, gap, submerged, ok, distance
 
 
 _triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=4)
@@ -241,7 +238,8 @@ def reconstruct(
     model = options.model if interface is not None else "none"
     mode = "water" if model != "none" else "air"
     rect = rectify(rig.left, rig.right, interface, mode)
-    rect_l, rect_r, disparity, search = _match(rect, rig, interface, left_image, right_image, z_range, options)
+    rect_l, rect_r, disparity, search, left_map = _match(rect, rig, interface, left_image, right_image, z_range,
+                                                         options)
     timings["rectify+match (s)"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -257,7 +255,7 @@ def reconstruct(
         rr[:, 1] += offset[v, u]
     if rl.shape[0] == 0:
         raise JaxStereoError("no matches survived: SGBM found no match in the expected depth range (no shared texture?)")
-    points, gap, submerged, ok, left_px, distance = _chunked(
+    points, gap, submerged, ok, distance = _chunked(
         _triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model), rl, rr)
     focal = float(rect.K[0, 0])
     gap_px = gap * focal / np.maximum(distance, 1e-9)
@@ -271,7 +269,7 @@ def reconstruct(
     survey = Survey(
         points=points[keep],
         colors=(colour if colour.ndim == 2 else np.repeat(colour[:, None], 3, axis=1)).astype(np.uint8),
-        pixels=left_px[keep],
+        pixels=np.stack([left_map[0][v[keep], u[keep]], left_map[1][v[keep], u[keep]]], axis=-1).astype(np.float64),
         submerged=submerged[keep].astype(bool),
         rig_json=json.dumps(rig_to_dict(rig.with_interface(interface)), default=float),
         model=options.model,
