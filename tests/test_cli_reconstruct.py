@@ -39,7 +39,7 @@ def test_reconstruct_command_writes_survey_ply_preview_summary(pair, tmp_path, c
     survey = load_survey(tmp_path / "out" / "survey.npz")
     assert len(survey) > 50000 and 0.3 < survey.submerged.mean() < 0.8
     err = survey.points[:, 2] - spec.height(survey.points[:, 0])
-    assert abs(np.median(err[survey.submerged])) < 4e-3  # 432 px wide: 1 px of disparity is 44 mm here
+    assert abs(np.median(err[survey.submerged])) < 6e-3  # 432 px wide: 1 px of disparity is 44 mm here (0.1 px: 4.4 mm)
     assert json.loads(survey.rig_json)["interface"]["level"] == 0.18
     ply = (tmp_path / "out" / "survey.ply").read_bytes()
     assert ply.startswith(b"ply\nformat binary_little_endian 1.0") and f"element vertex {len(survey)}".encode() in ply
