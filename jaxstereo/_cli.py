@@ -162,8 +162,10 @@ def _cmd_reconstruct(args) -> int:
     print(f"reconstruct: model {survey.model}, water level {level}")
     print(f"  points                      {len(survey)}")
     print(f"  submerged fraction          {summary['submerged_fraction']:.3f}")
-    print(f"  vertical parallax mean/max  {summary['vertical_parallax_px_mean']:.3f} / "
-          f"{summary['vertical_parallax_px_max']:.3f} px (first-order rectification, under water)")
+    print(f"  exact curve off the rows    {summary['vertical_parallax_px_mean']:.3f} / "
+          f"{summary['vertical_parallax_px_max']:.3f} px mean / max (under water; matches moved onto it)")
+    print(f"  dropped                     {summary['dropped_rays_apart']} rays apart, "
+          f"{summary['dropped_outside_height_range']} outside the height range")
     for stage, seconds in summary["seconds"].items():
         print(f"  {stage:<27} {seconds:.2f}")
     print(f"survey: {output}\npreview: {preview}\nsummary: {summary_path}" + (f"\nply: {args.ply}" if args.ply else ""))
@@ -490,7 +492,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", choices=["exact", "first-order", "none"], default="exact",
                    help="refraction model for under-water points (default exact)")
     p.add_argument("--z-range", type=float, nargs=2, metavar=("ZMIN", "ZMAX"),
-                   help="height range of the scene, m, bounding the disparity search (default -0.05 to level + 0.4)")
+                   help="height range of the scene, m: bounds the disparity search and every point (default -0.03 to "
+                        "level + 0.4)")
     p.add_argument("--block-size", type=int, default=5, help="SGBM block size, pixels (odd, default 5)")
     p.add_argument("-o", "--output", required=True, help="survey .npz to write")
     p.add_argument("--ply", help="also write the points as PLY")
