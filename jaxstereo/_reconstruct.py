@@ -50,10 +50,11 @@ class ReconstructOptions:
     world frame: it bounds the disparity search and every point (default: 3 cm below z = 0 to 40 cm
     above the water, or above z = 0 when dry); `match` SGBM options; `colour` match on the three colour
     channels (grey images work either way); `max_ray_gap_px` drop matches whose two rays pass further
-    apart than this many pixels at the point's distance; `subpixel` refine SGBM's disparities along
-    each match's exact epipolar curve (bounded, cost-checked; `subpixel_window` pixels,
-    `subpixel_iterations` steps; off by default: on the independent POV-Ray flume's fine JPEG texture it
-    made disparities worse than SGBM's own sub-pixel values), else SGBM's values moved onto the curve.
+    apart than this many pixels at the point's distance; `subpixel` refine SGBM's disparities by
+    Lucas-Kanade over `subpixel_window` px patches from whole-pixel bases, where the surface is smooth
+    (see `refine_disparity`; on the POV-Ray flume's boards the RMSE falls from 2.9 to 2.0 mm (nadir) and
+    from 1.8 to 1.1 mm (oblique); on its rubble the MAE changes by +0.1 mm); without it, SGBM's own
+    sub-pixel values.
     """
 
     model: str = "exact"
@@ -61,9 +62,8 @@ class ReconstructOptions:
     match: MatchOptions = MatchOptions()
     colour: bool = True
     max_ray_gap_px: float = 1.0
-    subpixel: bool = False
-    subpixel_window: int = 7
-    subpixel_iterations: int = 4
+    subpixel: bool = True
+    subpixel_window: int = 31
 
     def __post_init__(self):
         if self.model not in MODELS:
@@ -245,8 +245,7 @@ def reconstruct(
     t1 = time.perf_counter()
     offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None
     if options.subpixel:
-        disparity = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
-                                     options.subpixel_iterations)
+        disparity = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()

@@ -76,9 +76,9 @@ def test_sloping_board_one_clean_point_per_pixel(flume):
     e, z = e[on], P[on, 2]
     assert np.mean(np.abs(e) > 20) <= 0.005  # gross outliers: 1.8 % before one match per pixel, 0.00 % now
     medians = [np.median(e[(z >= lo) & (z < lo + 0.05)]) for lo in np.arange(0.0, 0.30, 0.05)]
-    assert max(abs(m) for m in medians) <= 1.3, medians  # 1.16 measured, 0.98 of it the calibrated height
+    assert max(abs(m) for m in medians) <= 1.2, medians  # 1.02 measured, 0.98 of it the calibrated height
     sub = (z < truth["scenes"]["board_wet"]["water_level"]) & (np.abs(e) < 20)
-    assert np.sqrt(np.mean(e[sub] ** 2)) <= 3.3  # 3.09 measured (plain OpenCV 3.49)
+    assert np.sqrt(np.mean(e[sub] ** 2)) <= 2.4  # 2.22 measured (SGBM's own sub-pixel values 3.09; plain OpenCV 3.49)
 
 
 def _c2m(P, surface, x, y, box):
@@ -106,4 +106,4 @@ def test_breakwater_wet_survey_has_no_refracted_mismatches(flume):
     emerged_dry = np.mean(d_dry[z_dry >= level + 0.01])
     assert emerged_wet - emerged_dry <= 0.2  # the emerged rock matched once, as in the dry survey
     submerged = d_wet[z_wet < level - 0.01]
-    assert np.mean(submerged) <= 3.8  # 3.5 measured (plain OpenCV 3.56; the 2.5 is not met)
+    assert np.mean(submerged) <= 3.8  # 3.54 measured (plain OpenCV 3.56; the 2.5 is not met)

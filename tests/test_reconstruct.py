@@ -54,19 +54,18 @@ def test_board_exact_model_meets_paper_accuracy(board, capsys):
               + layer_table_markdown(results))
     submerged_layers = [r for r in results["exact"] if r["depth_from_m"] >= 0]
     assert len(submerged_layers) >= 3
-    # SGBM's own sub-pixel values (the default: dense Lucas-Kanade was worse on the independent POV-Ray
-    # flume) are pulled towards whole pixels; on the flat floor (one disparity everywhere, the deepest
-    # layer) that pull does not average out: about 0.1 px, 3 mm under 0.18 m of water.
+    # The flat floor (the deepest layer, one disparity everywhere) is where SGBM's own sub-pixel values lean
+    # towards whole pixels (2.9 mm here); the patch refinement from whole-pixel bases removes that (0.04 mm).
     for r in results["exact"]:
-        assert abs(r["median_mm"]) <= (3.5 if r["depth_from_m"] >= 0.15 else 1.0), r
+        assert abs(r["median_mm"]) <= 0.5, r
     every = exact_survey.points[:, 2] - spec.height(exact_survey.points[:, 0])
     assert np.mean(np.abs(every) > 0.02) <= 0.005  # one consistent match per pixel: no refracted mismatches
     sub = exact_survey.submerged
     err = exact_survey.points[sub, 2] - spec.height(exact_survey.points[sub, 0])
-    assert np.sqrt(np.mean(err**2)) <= 3.0e-3  # measured 2.75 mm (SGBM sub-pixel values)
+    assert np.sqrt(np.mean(err**2)) <= 1.0e-3
     # Ignoring refraction puts the deep points centimetres off; the first-order model millimetres.
     deepest = lambda m: max(results[m], key=lambda r: r["depth_from_m"])  # noqa: E731
-    assert deepest("none")["median_mm"] > 10 * abs(deepest("exact")["median_mm"]) + 10
+    assert deepest("none")["median_mm"] > 20 * abs(deepest("exact")["median_mm"]) + 10
     assert abs(deepest("first-order")["median_mm"]) > abs(deepest("exact")["median_mm"])
 
 
