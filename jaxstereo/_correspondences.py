@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import cv2
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera
@@ -60,7 +59,7 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
 
     **Returns:** `(left_pixels, right_pixels)`, each (n, 2) float64 pixels, measured in both directions.
     """
-    from ._reconstruct import ReconstructOptions, _interface_for, _match, _pairs_from_disparity, _row_offsets
+    from ._reconstruct import ReconstructOptions, _chunked, _interface_for, _match, _pairs_from_disparity, _row_offsets
 
     interface: Interface = _interface_for(rig, level_guess)
     z_range = (-0.03, float(interface.level) + 0.4)
@@ -72,8 +71,7 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
         return np.zeros((0, 2)), np.zeros((0, 2))
     rr[:, 1] += offset[v, u]
     pick = spread_over_grid(rl, rect.size, max_points)
-    pl, pr = (np.asarray(p) for p in _real_pixels(rect, rig.left, rig.right, jnp.asarray(rl[pick]),
-                                                  jnp.asarray(rr[pick])))
+    pl, pr = _chunked(_real_pixels, (rect, rig.left, rig.right), rl[pick], rr[pick])  # fixed size: compiled once
     w, h = rig.image_size
     margin = KLT_WINDOW // 2 + 1
     inside = np.all((pl >= margin) & (pl <= [w - 1 - margin, h - 1 - margin]) & (pr >= margin)

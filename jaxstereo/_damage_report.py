@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from ._damage import DemDamage, ProfileDamage, damage_level, dem_damage, profile_damage, slope_abscissa
+from ._damage import (DemDamage, ProfileDamage, damage_level, dem_damage, profile_damage, slope_abscissa,
+                      to_slope_frame)
 from ._errors import JaxStereoError
 from ._grid import DEM
 from ._io import write_text_atomic
@@ -135,8 +136,6 @@ def _off_the_slope(x, z, cot, origin, zone, dn50) -> str:
     """Why an initial cross-section is not one of the structure's (empty when it is): over the active zone,
     its median distance from the design slope line must be within `ON_SLOPE_DN50` Dn50. Sections past the
     sides of the model (the bare floor, a flume wall) fail this."""
-    from ._damage import to_slope_frame
-
     ok = np.isfinite(z)
     X, Z = to_slope_frame(x[ok], z[ok], cot, origin)
     inside = (X >= zone[0]) & (X <= zone[1])

@@ -37,8 +37,8 @@ def project_exact_rectified(
     their exact refraction point. Valid for "air" and "water" rectifications alike.
     """
     center = camera.center
-    if interface is None:
-        return _rectified_pixel(rect, side, points, camera) if rect.mode == "air" else None
+    if interface is None:  # a dry scene: straight rays, air rectification
+        return _rectified_pixel(rect, side, points, camera)
     below = interface.height_of(points) < 0
     bent = refraction_points(center, points, interface)
     if rect.mode == "air":
@@ -80,12 +80,11 @@ def exact_row_offset(rect: Rectification, left: Camera, right: Camera, interface
 
     **Arguments:** rectified left pixels `rl` (n, 2) and their matches `rr` (n, 2) on the same row.
 
-    **Returns:** `(offset, shift)`: the exact right pixel's row minus the left row (n,) pixels, and its
-    column minus `rr`'s column (n,) pixels. Both are zero for an exact rectification.
+    **Returns:** `(offset,)`: the exact right pixel's row minus the left row (n,) pixels; zero for an exact
+    rectification.
     """
     points, _, _, _ = triangulate_exact(rect, left, right, interface, rl, rr)
-    exact = project_exact_rectified(rect, right, 1, interface, points)
-    return exact[:, 1] - rl[:, 1], exact[:, 0] - rr[:, 0]
+    return (project_exact_rectified(rect, right, 1, interface, points)[:, 1] - rl[:, 1],)
 
 
 def disparity_bounds(rect: Rectification, left: Camera, right: Camera, interface: Interface | None,

@@ -192,7 +192,7 @@ def _row_offsets(rect, rig, interface, disparity, search):
     V, U, Dg = np.meshgrid(vs, us, ds, indexing="ij")
     rl = np.stack([U.ravel(), V.ravel()], axis=-1)
     rr = np.stack([U.ravel() - Dg.ravel(), V.ravel()], axis=-1)
-    table, _ = _chunked(exact_row_offset, (rect, rig.left, rig.right, interface), rl, rr)
+    (table,) = _chunked(exact_row_offset, (rect, rig.left, rig.right, interface), rl, rr)
     table = np.nan_to_num(table.reshape(V.shape), nan=0.0)
     v, u = np.nonzero(np.isfinite(disparity))
     coords = np.stack([v / OFFSET_GRID_PX, u / OFFSET_GRID_PX,
