@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from jaxstereo._grid import grid_delaunay, grid_median
+from jaxstereo._surface.grid import grid_delaunay, grid_median
 
 
 def main(argv=None):

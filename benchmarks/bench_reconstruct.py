@@ -32,7 +32,7 @@ DEFAULT_DATA = ROOT.parent / "shared" / "data" / "povray-flume-dev"
 
 def _calibrate(data: Path, work: Path) -> Path:
     rig = work / "rig.json"
-    from jaxstereo._cli import main
+    from jaxstereo._app.cli import main
 
     if main(["calibrate", "--left", str(data / "calib" / "*_L.jpg"), "--right", str(data / "calib" / "*_R.jpg"),
              "--board", "chessboard:9x6:0.04", "--origin-left", str(data / "origin_L.jpg"),

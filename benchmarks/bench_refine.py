@@ -19,11 +19,10 @@ import optimistix as optx
 from scipy.optimize import least_squares
 
 import jaxstereo as js
-from jaxstereo._flume_rig import RigSpec, flume_rig
-from jaxstereo._refine import refine_problem
-from jaxstereo._rig import Rig
-from jaxstereo._scenes import Breakwater, build_scene
-
+from jaxstereo._calibration.rig import Rig
+from jaxstereo._stereo.refine import refine_problem
+from jaxstereo._synthetic.flume_rig import RigSpec, flume_rig
+from jaxstereo._synthetic.scenes import Breakwater, build_scene
 
 SOLVERS = {
     "lm": optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8),

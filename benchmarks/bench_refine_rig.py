@@ -27,10 +27,10 @@ import numpy as np
 from scipy.optimize import least_squares
 
 import jaxstereo as js
-from jaxstereo._flume_rig import flume_rig, realistic_rig_spec
-from jaxstereo._refine import refine_problem
-from jaxstereo._scenes import Breakwater, build_scene
-from jaxstereo._synthetic_matches import surface_correspondences
+from jaxstereo._stereo.refine import refine_problem
+from jaxstereo._synthetic.flume_rig import flume_rig, realistic_rig_spec
+from jaxstereo._synthetic.matches import surface_correspondences
+from jaxstereo._synthetic.scenes import Breakwater, build_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 LEVEL = 0.158

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxstereo as js
-from jaxstereo._refraction import NEWTON_ITERATIONS
+from jaxstereo._geometry.refraction import NEWTON_ITERATIONS
 
 
 def numpy_project_refracted(K, R, tvec, center, normal, level, n_air, n_water, points, iterations=NEWTON_ITERATIONS):

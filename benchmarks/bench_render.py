@@ -13,10 +13,10 @@ from pathlib import Path
 import jax
 
 import jaxstereo as js
-from jaxstereo._flume_rig import RigSpec, flume_rig
-from jaxstereo._images import write_image
-from jaxstereo._render import RenderOptions, render_view
-from jaxstereo._scenes import Breakwater, build_scene
+from jaxstereo._app.images import write_image
+from jaxstereo._synthetic.flume_rig import RigSpec, flume_rig
+from jaxstereo._synthetic.render import RenderOptions, render_view
+from jaxstereo._synthetic.scenes import Breakwater, build_scene
 
 
 def main(argv=None):

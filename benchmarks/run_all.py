@@ -60,8 +60,8 @@ def _child_single(manifest: str, repeat: int) -> dict:
     started = time.perf_counter()
     import jax
 
-    from jaxstereo._batch_job import plan_jobs, run_pair
-    from jaxstereo._manifest import load_manifest
+    from jaxstereo._app.batch_job import plan_jobs, run_pair
+    from jaxstereo._app.manifest import load_manifest
 
     imported = time.perf_counter() - started
     m = load_manifest(manifest)
@@ -89,13 +89,13 @@ def _child_single(manifest: str, repeat: int) -> dict:
 def _bare_sgbm(m, repeat: int) -> float:
     import jax
 
-    from jaxstereo._images import read_image
-    from jaxstereo._interface import Interface
-    from jaxstereo._matching import MatchOptions, disparity_search_range, sgbm_disparity
-    from jaxstereo._epipolar import disparity_bounds
-    from jaxstereo._reconstruct import _grey
-    from jaxstereo._rectify import rectification_maps, rectify, remap
-    from jaxstereo._rig import load_rig
+    from jaxstereo._app.images import read_image
+    from jaxstereo._calibration.rig import load_rig
+    from jaxstereo._geometry.interface import Interface
+    from jaxstereo._stereo.epipolar import disparity_bounds
+    from jaxstereo._stereo.matching import MatchOptions, disparity_search_range, sgbm_disparity
+    from jaxstereo._stereo.reconstruct import _grey
+    from jaxstereo._stereo.rectify import rectification_maps, rectify, remap
 
     rig = load_rig(m.rig)
     pair = m.pairs[0]
@@ -115,7 +115,7 @@ def _bare_sgbm(m, repeat: int) -> float:
 
 
 def _child_batch(manifest: str, output: str, workers: int) -> dict:
-    from jaxstereo._batch import run_batch
+    from jaxstereo._app.batch import run_batch
 
     result = run_batch(manifest, output, workers=workers, log=lambda _: None, progress_stream=open("/dev/null", "w"))
     workers_peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0

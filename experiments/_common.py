@@ -7,7 +7,7 @@ import io
 import time
 from pathlib import Path
 
-from jaxstereo._io import write_text_atomic
+from jaxstereo._app.io import write_text_atomic
 
 
 class Output:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxstereo import IncidenceRig, incidence_report
-from jaxstereo._plots import new_figure, save_figure
+from jaxstereo._app.plots import new_figure, save_figure
 
 from ._common import Output
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 import jaxstereo as js
-from jaxstereo._plots import new_figure, save_figure
+from jaxstereo._app.plots import new_figure, save_figure
 
 from ._common import Output
 

@@ -12,8 +12,8 @@ import optimistix as optx
 from scipy.optimize import least_squares
 
 import jaxstereo as js
-from jaxstereo._refine import refine_problem
-from jaxstereo._synthetic_matches import surface_correspondences
+from jaxstereo._stereo.refine import refine_problem
+from jaxstereo._synthetic.matches import surface_correspondences
 
 from ._common import Output
 

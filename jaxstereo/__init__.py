@@ -3,9 +3,12 @@
 The public API is exactly what this file re-exports.
 """
 
-from ._boards import BoardSpec as BoardSpec
-from ._board_render import board_poses as board_poses, render_board as render_board
-from ._calibration import (
+from ._app.batch import BatchResult as BatchResult, run_batch as run_batch
+from ._app.batch_job import run_pair as run_pair
+from ._app.images import read_image as read_image, write_image as write_image
+from ._app.manifest import Manifest as Manifest, PairEntry as PairEntry, load_manifest as load_manifest
+from ._calibration.boards import BoardSpec as BoardSpec
+from ._calibration.calibration import (
     CameraCalibration as CameraCalibration,
     StereoCalibration as StereoCalibration,
     calibrate_camera as calibrate_camera,
@@ -13,12 +16,56 @@ from ._calibration import (
     detect_all as detect_all,
     world_frame_rig as world_frame_rig,
 )
-from ._camera import (
+from ._calibration.detect import Detection as Detection, detect_board as detect_board
+from ._calibration.rig import Rig as Rig, load_rig as load_rig, save_rig as save_rig
+from ._geometry.camera import (
     Camera as Camera,
     distort_normalized as distort_normalized,
     undistort_normalized as undistort_normalized,
 )
-from ._damage import (
+from ._geometry.errors import JaxStereoError as JaxStereoError
+from ._geometry.first_order import (
+    backproject_first_order as backproject_first_order,
+    first_order_homography as first_order_homography,
+    project_first_order as project_first_order,
+    refraction_angle_exact as refraction_angle_exact,
+    refraction_angle_first_order as refraction_angle_first_order,
+    virtual_camera as virtual_camera,
+)
+from ._geometry.incidence import (
+    IncidenceReport as IncidenceReport,
+    IncidenceRig as IncidenceRig,
+    incidence_report as incidence_report,
+    plot_incidence_report as plot_incidence_report,
+)
+from ._geometry.interface import Interface as Interface, tilt_normal as tilt_normal
+from ._geometry.pose import Pose as Pose, so3_exp as so3_exp, so3_log as so3_log
+from ._geometry.precision import float64 as float64
+from ._geometry.refraction import (
+    backproject_refracted as backproject_refracted,
+    intersect_plane as intersect_plane,
+    optical_path_length as optical_path_length,
+    project_refracted as project_refracted,
+    refract_directions as refract_directions,
+    refraction_points as refraction_points,
+)
+from ._geometry.triangulate import triangulate_rays as triangulate_rays
+from ._stereo.evaluation import layer_errors as layer_errors, layer_table_markdown as layer_table_markdown
+from ._stereo.matching import MatchOptions as MatchOptions
+from ._stereo.reconstruct import ReconstructOptions as ReconstructOptions, reconstruct as reconstruct
+from ._stereo.rectify import Rectification as Rectification, rectify as rectify
+from ._stereo.refine import (
+    RefineResult as RefineResult,
+    find_correspondences as find_correspondences,
+    refine_rig as refine_rig,
+)
+from ._stereo.survey import (
+    Survey as Survey,
+    load_survey as load_survey,
+    save_ply as save_ply,
+    save_survey as save_survey,
+)
+from ._surface.damage import (
     DemDamage as DemDamage,
     ProfileDamage as ProfileDamage,
     Zone as Zone,
@@ -27,26 +74,12 @@ from ._damage import (
     parse_slope as parse_slope,
     profile_damage as profile_damage,
 )
-from ._batch import BatchResult as BatchResult, run_batch as run_batch
-from ._batch_job import run_pair as run_pair
-from ._damage_report import (
+from ._surface.damage_report import (
     StretchDamage as StretchDamage,
     stretch_damage as stretch_damage,
     write_damage_report as write_damage_report,
 )
-from ._detect import Detection as Detection, detect_board as detect_board
-from ._errors import JaxStereoError as JaxStereoError
-from ._evaluation import layer_errors as layer_errors, layer_table_markdown as layer_table_markdown
-from ._first_order import (
-    backproject_first_order as backproject_first_order,
-    first_order_homography as first_order_homography,
-    project_first_order as project_first_order,
-    refraction_angle_exact as refraction_angle_exact,
-    refraction_angle_first_order as refraction_angle_first_order,
-    virtual_camera as virtual_camera,
-)
-from ._flume_rig import RigSpec as RigSpec, flume_rig as flume_rig
-from ._grid import (
+from ._surface.grid import (
     DEM as DEM,
     fill_holes as fill_holes,
     grid_delaunay as grid_delaunay,
@@ -55,42 +88,17 @@ from ._grid import (
     load_surface as load_surface,
     save_dem as save_dem,
 )
-from ._heightfield import Heightfield as Heightfield
-from ._images import read_image as read_image, write_image as write_image
-from ._incidence import (
-    IncidenceReport as IncidenceReport,
-    IncidenceRig as IncidenceRig,
-    incidence_report as incidence_report,
-    plot_incidence_report as plot_incidence_report,
-)
-from ._interface import Interface as Interface, tilt_normal as tilt_normal
-from ._manifest import Manifest as Manifest, PairEntry as PairEntry, load_manifest as load_manifest
-from ._matching import MatchOptions as MatchOptions
-from ._pose import Pose as Pose, so3_exp as so3_exp, so3_log as so3_log
-from ._precision import float64 as float64
-from ._profiles import (
+from ._surface.profiles import (
     moving_average as moving_average,
     profile_from_dem as profile_from_dem,
     profile_from_points as profile_from_points,
 )
-from ._reconstruct import ReconstructOptions as ReconstructOptions, reconstruct as reconstruct
-from ._rectify import Rectification as Rectification, rectify as rectify
-from ._refine import (
-    RefineResult as RefineResult,
-    find_correspondences as find_correspondences,
-    refine_rig as refine_rig,
-)
-from ._refraction import (
-    backproject_refracted as backproject_refracted,
-    intersect_plane as intersect_plane,
-    optical_path_length as optical_path_length,
-    project_refracted as project_refracted,
-    refract_directions as refract_directions,
-    refraction_points as refraction_points,
-)
-from ._render import RenderedView as RenderedView, RenderOptions as RenderOptions, render_view as render_view
-from ._rig import Rig as Rig, load_rig as load_rig, save_rig as save_rig
-from ._scenes import (
+from ._synthetic.board_render import board_poses as board_poses, render_board as render_board
+from ._synthetic.campaign import write_synthetic_campaign as write_synthetic_campaign
+from ._synthetic.flume_rig import RigSpec as RigSpec, flume_rig as flume_rig
+from ._synthetic.heightfield import Heightfield as Heightfield
+from ._synthetic.render import RenderedView as RenderedView, RenderOptions as RenderOptions, render_view as render_view
+from ._synthetic.scenes import (
     Breakwater as Breakwater,
     Damage as Damage,
     Extent as Extent,
@@ -101,8 +109,5 @@ from ._scenes import (
     scene_from_json as scene_from_json,
     scene_to_json as scene_to_json,
 )
-from ._synthetic_campaign import write_synthetic_campaign as write_synthetic_campaign
-from ._survey import Survey as Survey, load_survey as load_survey, save_ply as save_ply, save_survey as save_survey
-from ._triangulate import triangulate_rays as triangulate_rays
 
 __version__ = "0.1.0"

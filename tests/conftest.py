@@ -1,11 +1,39 @@
-import jax
 import numpy as np
 import pytest
+from jaxtyping import install_import_hook
 
-# Tests run in float64, like the library's pipeline functions; the library itself never flips this flag.
-jax.config.update("jax_enable_x64", True)
+# Every function of the package is checked against its annotations (jaxtyping shapes and dtypes through
+# beartype) while the suite runs: the hook must be in place before anything imports jaxstereo.
+with install_import_hook("jaxstereo", "typecheck.checker"):
+    import jaxstereo  # noqa: F401
+
+# No global `jax_enable_x64` here: the library runs its geometry in float64 by construction, so the suite
+# exercises what a user gets with JAX's default settings (`tests/geometry/test_precision.py` checks it).
 
 
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261121)
+
+
+@pytest.fixture
+def x64():
+    """64-bit JAX types for one test, as a user who transforms the geometry kernels (jit, grad, vmap) or does
+    float64 arithmetic on JAX arrays must enable them; the library's own calls need no such thing."""
+    import jax
+
+    with jax.enable_x64(True):
+        yield
+
+
+@pytest.fixture
+def unchecked():
+    """The package without the suite's type checker, as users run it: for tests of the library's own
+    messages on bad input, which the checker would otherwise pre-empt with its own."""
+    import jaxtyping
+
+    jaxtyping.config.update("jaxtyping_disable", True)
+    try:
+        yield
+    finally:
+        jaxtyping.config.update("jaxtyping_disable", False)

@@ -1,0 +1,1 @@
+"""The application: command line, batch campaigns, manifests, image and file input/output, figures."""

@@ -1,0 +1,599 @@
+"""The `jaxstereo` command line: a thin shell over library functions."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .._geometry.errors import JaxStereoError
+
+
+def _cmd_incidence_report(args) -> int:
+    from .._geometry.incidence import IncidenceRig, incidence_report, plot_incidence_report
+    from .io import write_text_atomic
+
+    rig = IncidenceRig(
+        height_m=args.height,
+        depth_m=args.depth,
+        baseline_m=args.baseline,
+        focal_px=args.focal_px,
+        n_air=args.n_air,
+        n_water=args.n_water,
+    )
+    if args.step_deg <= 0 or args.max_deg <= 0:
+        raise JaxStereoError("--max-deg and --step-deg must be positive")
+    angles = np.arange(0.0, args.max_deg + 1e-9, args.step_deg)
+    report = incidence_report(angles, rig)
+    print(report.to_markdown())
+    for column, threshold, unit in (("angle_error_deg", 0.5, "deg"), ("pixel_error_px", 1.0, "px"),
+                                    ("error_3d_mm", 1.0, "mm")):
+        first = report.first_exceeding(column, threshold)
+        where = f"first exceeded at {first:g} deg" if first is not None else "never exceeded in this range"
+        print(f"{column} > {threshold:g} {unit}: {where}")
+    out = Path(args.output)
+    plot_incidence_report(report, out)
+    if args.markdown:
+        write_text_atomic(args.markdown, report.to_markdown() + "\n")
+    print(f"figure: {out}")
+    return 0
+
+
+def _cmd_calibrate(args) -> int:
+    from .._calibration.boards import BoardSpec
+    from .._calibration.calibration import calibrate_stereo, detect_all, world_frame_rig
+    from .._calibration.detect import detect_board
+    from .._calibration.rig import save_rig
+    from .images import expand_images, read_image, read_images_same_size
+    from .plots import plot_calibration_errors
+
+    board = BoardSpec.parse(args.board)
+    left_paths = expand_images(args.left, "left images")
+    right_paths = expand_images(args.right, "right images")
+    if len(left_paths) != len(right_paths):
+        raise JaxStereoError(
+            f"{len(left_paths)} left images match {args.left!r} but {len(right_paths)} right images match "
+            f"{args.right!r}: the pairs must match one to one (sorted by name)"
+        )
+    left_images, size = read_images_same_size(left_paths)
+    right_images, size_r = read_images_same_size(right_paths)
+    if size_r != size:
+        raise JaxStereoError(f"left images are {size[0]}x{size[1]} but right images are {size_r[0]}x{size_r[1]}")
+    print(f"calibrate: {len(left_paths)} pairs of {size[0]}x{size[1]} images, board {board}")
+    left_det = detect_all(left_images, board)
+    right_det = detect_all(right_images, board)
+    origin = []
+    for path in (args.origin_left, args.origin_right):
+        image = read_image(path, grayscale=True)
+        if (image.shape[1], image.shape[0]) != size:
+            raise JaxStereoError(f"origin image {path!r} is {image.shape[1]}x{image.shape[0]}, not {size[0]}x{size[1]}")
+        det = detect_board(image, board)
+        if det is None:
+            raise JaxStereoError(f"no board {board} found in origin image {path!r}")
+        origin.append(det)
+    stereo = calibrate_stereo(left_det, right_det, board, size, drop_outliers=not args.keep_outliers,
+                              origin=None if args.no_refine else (origin[0], origin[1]))
+    rig, report = world_frame_rig(stereo, board, origin[0], origin[1], refine=not args.no_refine)
+    names = [p.name for p in left_paths]
+    calibration = {
+        "board": str(board),
+        "pairs": len(left_paths),
+        "left_views_used": [names[i] for i in stereo.left.views],
+        "right_views_used": [right_paths[i].name for i in stereo.right.views],
+        "dropped_left": [names[i] for i in stereo.left.dropped],
+        "dropped_right": [right_paths[i].name for i in stereo.right.dropped],
+        "pairs_missing_board": [names[i] for i in stereo.missing],
+        "rms_left_px": stereo.left.rms_px,
+        "rms_right_px": stereo.right.rms_px,
+        "rms_stereo_px": stereo.rms_px,
+        "baseline_m": stereo.baseline_m,
+        "distortion_model": stereo.distortion_model,
+        "focal_std_rel": stereo.focal_std_rel,
+        "world_frame": report,
+    }
+    rig = rig.__class__(rig.left, rig.right, None, calibration)
+    heights = [float(np.asarray(c.center)[2]) for c in (rig.left, rig.right)]
+    rows = [
+        ("views used (left / right / pairs)", f"{len(stereo.left.views)} / {len(stereo.right.views)} / {len(stereo.pairs)}"),
+        ("RMS left / right / stereo (px)", f"{stereo.left.rms_px:.3f} / {stereo.right.rms_px:.3f} / {stereo.rms_px:.3f}"),
+        ("baseline (m)", f"{stereo.baseline_m:.5f}"),
+        ("focal length left / right (px)", f"{stereo.left.K[0, 0]:.2f} / {stereo.right.K[0, 0]:.2f} "
+                                           f"(+/- {100 * stereo.focal_std_rel:.3f} %)"),
+        ("distortion model", stereo.distortion_model),
+        ("world frame from", report["pose_from"]),
+        ("camera heights above z = 0 (m)", f"{heights[0]:.4f} / {heights[1]:.4f}"),
+    ]
+    if "origin_rms_px_after" in report:
+        rows.append(("origin board RMS (px)", f"{report['origin_rms_px_after']:.3f}"))
+    width = max(len(r[0]) for r in rows)
+    for name, value in rows:
+        print(f"  {name:<{width}}  {value}")
+    for label, items in (("dropped (left)", calibration["dropped_left"]), ("dropped (right)", calibration["dropped_right"]),
+                         ("board missing in a pair", calibration["pairs_missing_board"])):
+        if items:
+            print(f"  {label}: {', '.join(items)}")
+    figure = Path(args.figure) if args.figure else Path(args.output).with_name(Path(args.output).stem + "_errors.png")
+    plot_calibration_errors(stereo, figure, names)
+    save_rig(rig, args.output)
+    print(f"rig: {args.output}\nfigure: {figure}")
+    return 0
+
+
+def _cmd_reconstruct(args) -> int:
+    import time
+
+    from .._calibration.rig import load_rig
+    from .._stereo.matching import MatchOptions
+    from .._stereo.reconstruct import ReconstructOptions, reconstruct
+    from .._stereo.survey import plot_survey_preview, save_ply, save_survey, survey_summary_json
+    from .images import check_pair, read_image
+    from .io import write_text_atomic
+
+    output = Path(args.output)
+    if output.suffix != ".npz":
+        raise JaxStereoError(f"output {args.output!r} must end in .npz")
+    start = time.perf_counter()
+    rig = load_rig(args.rig)
+    left = read_image(args.left)
+    right = read_image(args.right)
+    check_pair(left, right, rig.image_size, f"left image {args.left!r}", f"right image {args.right!r}")
+    load_s = time.perf_counter() - start
+    z_range = tuple(args.z_range) if args.z_range else None
+    if z_range is not None and not z_range[0] < z_range[1]:
+        raise JaxStereoError(f"--z-range must be ZMIN ZMAX with ZMIN < ZMAX, got {args.z_range}")
+    options = ReconstructOptions(model=args.model, z_range_m=z_range, match=MatchOptions(block_size=args.block_size))
+    survey, summary = reconstruct(left, right, rig, args.water_level, options)
+    start = time.perf_counter()
+    save_survey(survey, output)
+    if args.ply:
+        save_ply(survey, args.ply)
+    write_s = time.perf_counter() - start
+    summary["seconds"] = {"load (s)": load_s, **summary["seconds"], "write (s)": write_s}
+    preview = Path(args.preview) if args.preview else output.with_name(output.stem + "_preview.png")
+    plot_survey_preview(survey, rig.image_size, preview,
+                        f"{output.name}: {len(survey)} points, model {survey.model}, "
+                        f"{100 * summary['submerged_fraction']:.0f}% submerged")
+    summary_path = output.with_name(output.stem + "_summary.json")
+    write_text_atomic(summary_path, survey_summary_json(summary) + "\n")
+    level = "dry" if summary["water_level_m"] != summary["water_level_m"] else f"{summary['water_level_m']:.4f} m"
+    print(f"reconstruct: model {survey.model}, water level {level}")
+    print(f"  points                      {len(survey)}")
+    print(f"  submerged fraction          {summary['submerged_fraction']:.3f}")
+    print(f"  exact curve off the rows    {summary['vertical_parallax_px_mean']:.3f} / "
+          f"{summary['vertical_parallax_px_max']:.3f} px mean / max (under water; matches moved onto it)")
+    print(f"  dropped                     {summary['dropped_rays_apart']} rays apart, "
+          f"{summary['dropped_outside_height_range']} outside the height range")
+    for stage, seconds in summary["seconds"].items():
+        print(f"  {stage:<27} {seconds:.2f}")
+    print(f"survey: {output}\npreview: {preview}\nsummary: {summary_path}" + (f"\nply: {args.ply}" if args.ply else ""))
+    return 0
+
+
+def _cmd_grid(args) -> int:
+    from .._stereo.survey import load_survey
+    from .._surface.grid import fill_holes, grid_delaunay, grid_median, save_dem
+
+    survey = load_survey(args.survey)
+    if len(survey) == 0:
+        raise JaxStereoError(f"survey {args.survey!r} holds no points")
+    if not args.spacing > 0:
+        raise JaxStereoError(f"--spacing must be positive, got {args.spacing}")
+    if args.method == "delaunay":
+        dem = grid_delaunay(survey.points, args.spacing)
+    else:
+        dem = fill_holes(grid_median(survey.points, args.spacing), args.max_gap)
+    save_dem(dem, args.output)
+    filled = float(np.isfinite(dem.z).mean()) if dem.z.size else 0.0
+    print(f"grid: {len(survey)} points -> {dem.z.shape[1]} x {dem.z.shape[0]} cells of {args.spacing:g} m "
+          f"({100 * filled:.0f}% with data), method {args.method}\nDEM: {args.output}")
+    return 0
+
+
+def _cmd_damage(args) -> int:
+    from .._surface.damage import parse_slope
+    from .._surface.damage_report import ACTIVE_ZONE_DN50, stretch_damage, write_damage_report
+    from .._surface.grid import load_surface
+
+    if not (args.dn50 > 0):
+        raise JaxStereoError(f"--dn50 must be positive (metres), got {args.dn50}")
+    cot = parse_slope(args.slope)
+    spacing = args.spacing
+    before = load_surface(args.before, spacing, max_gap_m=args.max_gap)
+    after = load_surface(args.after, spacing, before.x, before.y, max_gap_m=args.max_gap)
+    if not np.any(np.isfinite(before.z) & np.isfinite(after.z)):
+        raise JaxStereoError(f"{args.before!r} and {args.after!r} do not overlap: are they in the same world frame?")
+    origin = _design_slope_origin(args, cot, before)
+    result = stretch_damage(before, after, args.dn50, cot, args.swl, origin, args.profile_spacing,
+                            stretch=tuple(args.stretch) if args.stretch else None,
+                            active_zone_dn50=tuple(args.active_zone) if args.active_zone else ACTIVE_ZONE_DN50)
+    paths = write_damage_report(result, before, after, args.output)
+    a = result.averaged
+    width = "whole surveyed width" if result.whole_width else "tested stretch"
+    print(f"damage: Dn50 {args.dn50:g} m, slope 1:{cot:g}, SWL {args.swl:g} m, {len(result.profiles)} profiles")
+    print(f"  {width:<18} y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m")
+    print(f"  active zone        z {result.active_zone[0]:.3f} to {result.active_zone[1]:.3f} m on the design slope")
+    print(f"  averaged profile   A_e {a.A_e:.5f} m2  L_e {a.L_e:.3f} m  d_e {a.d_e:.4f} m  S {a.S:.2f}  E2D {a.E2D:.2f}")
+    print(f"  over the stretch   S mean {result.S_mean:.2f} (S > {result.threshold:g})  S max {result.S_max:.2f}  "
+          f"L_e max {result.L_e_max:.3f} m  d_e max {result.d_e_max:.4f} m")
+    e3d = "not measurable (no Dn50 circle covered by both surveys)" if result.volumes.E3D is None else \
+        f"{result.volumes.E3D:.2f}"
+    print(f"  3-D                eroded {result.volumes.eroded_m3 * 1e6:.0f} cm3  accreted "
+          f"{result.volumes.accreted_m3 * 1e6:.0f} cm3  E3D {e3d}")
+    print(f"  damage level       {result.level} (S {a.S:.2f} of the averaged profile, slope 1:{cot:g})")
+    for y, why in result.skipped:
+        print(f"  profile y {y:+.3f} m not computed: {why}")
+    print("report: " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+def _design_slope_origin(args, cot: float, before) -> tuple[float, float]:
+    """The design slope line's point from --slope-origin, --slope-points or (on request) --fit-slope."""
+    from .._surface.damage_report import _column_mean, fit_design_slope
+
+    given = [name for name in ("slope_origin", "slope_points", "fit_slope") if getattr(args, name)]
+    if len(given) != 1:
+        raise JaxStereoError("place the design slope with exactly one of --slope-origin X Z (its toe, say), "
+                             "--slope-points X1 Z1 X2 Z2 or --fit-slope" + (f" (got {len(given)})" if given else ""))
+    if args.slope_origin:
+        return tuple(args.slope_origin)
+    if args.slope_points:
+        x1, z1, x2, z2 = args.slope_points
+        if x2 == x1 or (z2 - z1) == 0:
+            raise JaxStereoError("--slope-points must be two distinct points of a sloping line")
+        cot_points = abs((x2 - x1) / (z2 - z1))
+        if abs(cot_points - cot) > 0.05 * cot:
+            raise JaxStereoError(f"--slope-points give a slope of 1:{cot_points:.2f} but --slope is 1:{cot:g}")
+        return (x1, z1)
+    origin, rms = fit_design_slope(before.x, _column_mean(before.z), cot, args.swl, args.dn50)
+    print(f"design slope fitted to the initial survey near the SWL: x0 {origin[0]:.4f} m at z 0, RMS "
+          f"{1e3 * rms:.1f} mm normal to the slope")
+    if rms > 0.5 * args.dn50:
+        print(f"  WARNING: the initial survey departs from a 1:{cot:g} line by {1e3 * rms:.0f} mm RMS near the SWL: "
+              "is --slope right? Prefer --slope-origin.")
+    return origin
+
+
+def _read_control_points(path):
+    """CSV with a header and columns u_left, v_left, u_right, v_right, x, y, z (pixels, metres)."""
+    p = Path(path)
+    if not p.is_file():
+        raise JaxStereoError(f"control points file {path!r} does not exist")
+    try:
+        data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as err:
+        raise JaxStereoError(f"control points file {path!r}: {err}") from None
+    if data.shape[1] != 7 or data.shape[0] == 0:
+        raise JaxStereoError(f"control points file {path!r} must have 7 columns "
+                             "(u_left, v_left, u_right, v_right, x, y, z) and at least one row")
+    if not np.all(np.isfinite(data)):
+        raise JaxStereoError(f"control points file {path!r} contains NaN or infinite values")
+    return data[:, 0:2], data[:, 2:4], data[:, 4:7]
+
+
+MIN_DENSE_CORRESPONDENCES = 100  # below this many dense matches, refine falls back to SIFT
+
+
+def _cmd_refine(args) -> int:
+    from .._calibration.rig import Rig, load_rig, save_rig
+    from .._stereo.correspondences import dense_correspondences
+    from .._stereo.refine import find_correspondences, refine_rig
+    from .images import check_pair, read_image
+
+    rig = load_rig(args.rig)
+    left, right = read_image(args.left), read_image(args.right)
+    check_pair(left, right, rig.image_size, f"left image {args.left!r}", f"right image {args.right!r}")
+    refine = tuple(v.strip() for v in args.refine.split(",") if v.strip())
+    control, points = None, None
+    for item in args.control or []:
+        if item.endswith(".csv"):
+            points = _read_control_points(item)
+            continue
+        if control is not None:
+            raise JaxStereoError(f"--control {item!r}: give one control surface (floor or a DEM), not two")
+        if item == "floor":
+            control = "floor"
+        elif item.endswith(".npz"):
+            from .._surface.grid import load_surface
+
+            control = load_surface(item, 0.005)
+            if not np.isfinite(control.z).any():
+                raise JaxStereoError(f"control DEM {item!r} holds no heights")
+        else:
+            raise JaxStereoError(f"--control {item!r}: use 'floor', a DEM or survey .npz, or a control-points .csv")
+    if args.matches == "dense":
+        pl, pr = dense_correspondences(left, right, rig, args.water_level_guess, args.max_points)
+        source = "the dense matching"
+    if args.matches == "sift" or len(pl) < MIN_DENSE_CORRESPONDENCES:
+        if args.matches == "dense":
+            print(f"refine: only {len(pl)} dense matches; SIFT instead")
+        pl, pr = find_correspondences(left, right, args.max_points)
+        source = "SIFT"
+    print(f"refine: {len(pl)} correspondences from {source}")
+    result = refine_rig(rig, pl, pr, args.water_level_guess, refine=refine, control=control,
+                        floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points)
+    print(f"  {result.n_correspondences} consistent with the rig, {result.n_control} control terms, "
+          f"{result.steps} steps ({result.seconds:.1f} s)")
+    for name, (value, std) in result.parameters.items():
+        print(f"  {name:<34} {value:+.5f} +/- {std:.5f}")
+    if "water" in refine:
+        print(f"  level std: fit {1e3 * result.level_std_fit_m:.2f} mm, world frame {1e3 * result.level_std_frame_m:.2f} mm")
+    print(f"  reprojection RMS before / after    {result.rms_before_px:.3f} / {result.rms_after_px:.3f} px")
+    if control is not None:
+        print(f"  control surface std (from the data) {1e3 * result.surface_sigma_m:.2f} mm, "
+              f"{result.n_control - (0 if points is None else len(points[0]))} points on it")
+    print(f"  solver                             {result.result}")
+    if not result.converged:
+        raise JaxStereoError(f"the bundle adjustment {result.result} after {result.steps} steps: no rig written "
+                             "(check the level guess, the control and the correspondences)")
+    if "water" in refine and not result.level_determined:
+        level, std = result.parameters["water level (m)"]
+        message = (f"water level not determined: {level:.4f} m +/- {1e3 * std:.1f} mm from {result.n_correspondences} "
+                   f"correspondences and {result.n_control} control terms; add control (--control floor with "
+                   "--floor-x, a dry DEM, control points)")
+        if not args.keep_guess:
+            raise JaxStereoError(message + ", or pass --keep-guess to write the rig at the guessed level")
+        print(f"  WATER LEVEL NOT DETERMINED ({message}); keeping the guess {args.water_level_guess:.4f} m (--keep-guess)")
+        kept = result.rig.interface.with_level(float(args.water_level_guess))
+        calibration = dict(result.rig.calibration)
+        calibration["refine"] = {**calibration["refine"], "level_kept_from_guess": True,
+                                 "note": "the images did not determine the level; the guess (gauge reading) was kept"}
+        result = dataclasses.replace(result, rig=Rig(result.rig.left, result.rig.right, kept, calibration))
+    save_rig(result.rig, args.output)
+    print(f"rig: {args.output}")
+    return 0
+
+
+def _cmd_batch(args) -> int:
+    from .batch import run_batch
+
+    campaign = args.manifest
+    folder_options = {"--rig": args.rig, "--water-level": args.water_level, "--dn50": args.dn50,
+                      "--slope": args.slope, "--swl": args.swl}
+    if Path(campaign).is_dir():
+        campaign = _campaign_from_folder(Path(campaign), args)
+    elif any(v is not None for v in folder_options.values()):
+        given = ", ".join(k for k, v in folder_options.items() if v is not None)
+        raise JaxStereoError(f"{given}: only for a folder of pairs; a manifest holds its own settings")
+    result = run_batch(campaign, args.output, workers=args.workers, scheduler=args.scheduler)
+    if result.failed:
+        failures = "; ".join(f"{r['test']}/{r['stage']}: {r['error']}" for r in result.rows if r["status"] == "failed")
+        print(f"jaxstereo batch: error: {result.failed} of {len(result.rows)} pairs failed (logged in "
+              f"{result.output / 'batch.log'}): {failures}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _campaign_from_folder(folder: Path, args):
+    """A campaign from a folder of TEST_STAGE_L / TEST_STAGE_R images and the command's options."""
+    from .manifest import manifest_from_dict
+
+    if args.rig is None:
+        raise JaxStereoError(f"{str(folder)!r} is a folder of pairs: give --rig (and --water-level, and for damage "
+                             "--dn50, --slope, --swl), or a manifest")
+    data = {"rig": str(Path(args.rig).resolve()), "pairs": str(folder.resolve())}
+    if args.water_level is not None:
+        data["water_level"] = args.water_level
+    damage = {"dn50": args.dn50, "slope": args.slope, "swl": args.swl}
+    if any(v is not None for v in damage.values()):
+        missing = [f"--{k}" for k, v in damage.items() if v is None]
+        if missing:
+            raise JaxStereoError(f"damage needs --dn50, --slope and --swl together; missing {', '.join(missing)}")
+        if args.slope_origin:
+            damage["slope_origin"] = list(args.slope_origin)
+        if args.fit_slope:
+            damage["fit_slope"] = True
+        if args.stretch:
+            damage["stretch"] = list(args.stretch)
+        if args.active_zone:
+            damage["active_zone"] = list(args.active_zone)
+        data["damage"] = damage
+    return manifest_from_dict(data, folder, folder.resolve().parent)
+
+
+def _cmd_demo(args) -> int:
+    from .._synthetic.demo import run_demo
+
+    run_demo(args.output)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jaxstereo",
+        description="Refraction-aware stereo photogrammetry of wave-flume models through the water surface.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("demo", help="the whole survey on a synthetic flume: calibrate, refine, reconstruct, damage",
+                       description="Builds a synthetic flume (board photographs, a breakwater, three damage stages) and "
+                       "runs calibrate, refine, reconstruct, grid and damage end to end; writes a report folder.")
+    p.add_argument("-o", "--output", default="jaxstereo-demo", help="report folder (default jaxstereo-demo)")
+    p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser(
+        "batch", help="a whole campaign from a manifest: reconstruct, grid and damage every pair; resumable",
+        description="Runs every stereo pair of a campaign manifest (TOML) through reconstruct, grid and damage "
+        "against its test's reference stage. Finished pairs are skipped (resumable), a failing pair is logged and "
+        "skipped (exit status 1 at the end), and summary.csv plus a damage-versus-stage figure per test are "
+        "written. The manifest format is documented in the README.")
+    p.add_argument("manifest", metavar="MANIFEST|FOLDER",
+                   help="campaign manifest (TOML), or a folder of TEST_STAGE_L.png / TEST_STAGE_R.png pairs")
+    p.add_argument("--rig", help="rig JSON (folder of pairs only)")
+    p.add_argument("--water-level", type=float, help="water level, m (folder of pairs only)")
+    p.add_argument("--dn50", type=float, help="armour Dn50, m, for damage (folder of pairs only)")
+    p.add_argument("--slope", help="design slope, e.g. 1:2, for damage (folder of pairs only)")
+    p.add_argument("--swl", type=float, help="still water level, m, for damage (folder of pairs only)")
+    p.add_argument("--slope-origin", type=float, nargs=2, metavar=("X", "Z"),
+                   help="a point of the design slope line, m (folder of pairs only)")
+    p.add_argument("--fit-slope", action="store_true",
+                   help="fit the design slope to each test's reference survey (folder of pairs only)")
+    p.add_argument("--stretch", type=float, nargs=2, metavar=("Y0", "Y1"),
+                   help="the tested stretch, m (folder of pairs only; default the whole surveyed width)")
+    p.add_argument("--active-zone", type=float, nargs=2, metavar=("BELOW", "ABOVE"),
+                   help="erosion counted from BELOW to ABOVE Dn50 about the SWL (folder of pairs only; default 6 4)")
+    p.add_argument("-o", "--output", help="output folder (default: the manifest's output, or MANIFEST-out)")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: this process)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on a Dask distributed cluster (optional extra 'dask'), e.g. tcp://10.0.0.5:8786")
+    p.set_defaults(func=_cmd_batch)
+
+    p = sub.add_parser(
+        "incidence-report",
+        help="error of the first-order (virtual camera) model versus exact Snell, by incidence angle",
+        description="Tabulate and plot the first-order model's refraction-angle, pixel and 3-D error versus incidence.",
+    )
+    p.add_argument("--height", type=float, default=2.0, help="camera height above the water, m (default 2.0)")
+    p.add_argument("--depth", type=float, default=0.3, help="depth of the point below the water, m (default 0.3)")
+    p.add_argument("--baseline", type=float, default=0.16, help="stereo baseline, m (default 0.16)")
+    p.add_argument("--focal-px", type=float, default=3935.0, help="focal length, pixels (default 3935)")
+    p.add_argument("--n-air", type=float, default=1.0, help="refractive index of air (default 1.000)")
+    p.add_argument("--n-water", type=float, default=1.333, help="refractive index of water (default 1.333)")
+    p.add_argument("--max-deg", type=float, default=40.0, help="largest incidence angle, degrees (default 40)")
+    p.add_argument("--step-deg", type=float, default=5.0, help="step between angles, degrees (default 5)")
+    p.add_argument("-o", "--output", default="incidence-report.png", help="PNG figure to write")
+    p.add_argument("--markdown", help="also write the table to this Markdown file")
+    p.set_defaults(func=_cmd_incidence_report)
+
+    p = sub.add_parser(
+        "calibrate",
+        help="calibrate a stereo rig from board photographs; world frame Z up from a board on the floor",
+        description="Intrinsics of both cameras, their relative pose, and the world frame (z = 0 on the origin "
+        "board, Z up) from board photographs; writes the rig JSON and a PNG of per-view errors.",
+    )
+    p.add_argument("--left", required=True, help="left images (glob pattern, quoted)")
+    p.add_argument("--right", required=True, help="right images (glob pattern, quoted), same order")
+    p.add_argument("--board", required=True,
+                   help="chessboard:COLSxROWS:SQUARE (inner corners) or charuco:COLSxROWS:SQUARE:MARKER:DICT")
+    p.add_argument("--origin-left", required=True, help="left image of the board lying on z = 0")
+    p.add_argument("--origin-right", required=True, help="right image of the board lying on z = 0")
+    p.add_argument("-o", "--output", required=True, help="rig JSON to write")
+    p.add_argument("--figure", help="PNG of per-view errors (default: next to the rig, *_errors.png)")
+    p.add_argument("--keep-outliers", action="store_true", help="do not drop views with outlying errors")
+    p.add_argument("--no-refine", action="store_true",
+                   help="world frame from the origin board in the left image alone (solvePnP), not from the joint "
+                        "adjustment of the origin pair with the calibration pairs")
+    p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser(
+        "reconstruct",
+        help="dense survey of a partly submerged scene from one stereo pair",
+        description="Rectify, match (SGBM) and triangulate a wet stereo pair with exact refraction (or the "
+        "first-order model, or none); writes the survey .npz, a preview PNG and a summary JSON.",
+    )
+    p.add_argument("left", help="left image")
+    p.add_argument("right", help="right image")
+    p.add_argument("--rig", required=True, help="rig JSON (from jaxstereo calibrate or refine)")
+    p.add_argument("--water-level", type=float, help="water level, m (world Z); default: the rig's interface, "
+                   "or a dry survey if it has none")
+    p.add_argument("--model", choices=["exact", "first-order", "none"], default="exact",
+                   help="refraction model for under-water points (default exact)")
+    p.add_argument("--z-range", type=float, nargs=2, metavar=("ZMIN", "ZMAX"),
+                   help="height range of the scene, m: bounds the disparity search and every point (default -0.03 to "
+                        "level + 0.4)")
+    p.add_argument("--block-size", type=int, default=5, help="SGBM block size, pixels (odd, default 5)")
+    p.add_argument("-o", "--output", required=True, help="survey .npz to write")
+    p.add_argument("--ply", help="also write the points as PLY")
+    p.add_argument("--preview", help="preview PNG (default: next to the survey, *_preview.png)")
+    p.set_defaults(func=_cmd_reconstruct)
+
+    p = sub.add_parser("refine", help="water level (and tilt, right-camera pose) from a wet pair by bundle adjustment",
+                       description="Bundle adjustment through exact refraction (optimistix): refines the water level, "
+                       "optionally the interface tilt and the right camera's pose, and writes the refined rig.")
+    p.add_argument("left", help="left image")
+    p.add_argument("right", help="right image")
+    p.add_argument("--rig", required=True, help="rig JSON")
+    p.add_argument("--water-level-guess", type=float, required=True, help="starting water level, m")
+    p.add_argument("--control", action="append", metavar="floor|DEM.npz|POINTS.csv",
+                   help="control: 'floor' (points on z = 0) or a dry survey of the model (DEM or survey .npz: "
+                   "the parts that did not move), and/or a CSV of control points "
+                   "(u_left,v_left,u_right,v_right,x,y,z); may be repeated")
+    p.add_argument("--floor-x", type=float, nargs=2, metavar=("XMIN", "XMAX"),
+                   help="world x range where the floor is bare (e.g. in front of the toe)")
+    p.add_argument("--refine", default="water", help="comma list of water, tilt, right-pose (default water)")
+    p.add_argument("--max-points", type=int, default=2000, help="correspondences to use (default 2000)")
+    p.add_argument("--matches", choices=["dense", "sift"], default="dense",
+                   help="correspondences from the dense matching, spread over the image (default; SIFT when it "
+                        "finds too few), or SIFT features")
+    p.add_argument("--keep-guess", action="store_true",
+                   help="when the images cannot determine the level, write the rig at the guessed level (said so in "
+                        "its provenance) instead of refusing")
+    p.add_argument("-o", "--output", required=True, help="refined rig JSON")
+    p.set_defaults(func=_cmd_refine)
+
+    p = sub.add_parser("grid", help="grid a survey into a DEM (median per cell, or Delaunay as the paper)",
+                       description="Grid a survey .npz into a DEM .npz (x, y, z with NaN where no data, spacing).")
+    p.add_argument("survey", help="survey .npz")
+    p.add_argument("--spacing", type=float, default=0.005, help="cell size, m (default 0.005)")
+    p.add_argument("--method", choices=["median", "delaunay"], default="median",
+                   help="median per cell (fast, robust; default) or linear on the Delaunay triangulation")
+    p.add_argument("--max-gap", type=float, default=0.0, help="fill holes up to this size, m (median only)")
+    p.add_argument("-o", "--output", required=True, help="DEM .npz to write")
+    p.set_defaults(func=_cmd_grid)
+
+    p = sub.add_parser("damage", help="armour-layer damage between two surveys or DEMs: S, E2D, E3D, volumes",
+                       description="Compare a before and an after survey (or DEM): per-profile and averaged damage "
+                       "(A_e, L_e, d_e, S, E2D), eroded and accreted volumes and E3D; JSON, CSV and PNG report.")
+    p.add_argument("before", help="survey or DEM .npz before the test")
+    p.add_argument("after", help="survey or DEM .npz after the test")
+    p.add_argument("--dn50", type=float, required=True, help="nominal diameter of the armour units, m")
+    p.add_argument("--slope", required=True, help="design slope: cotangent (2) or V:H (1:2)")
+    p.add_argument("--swl", type=float, required=True, help="still water level, m (world Z)")
+    p.add_argument("--slope-origin", type=float, nargs=2, metavar=("X", "Z"),
+                   help="a point of the design slope line (its toe, say), m")
+    p.add_argument("--slope-points", type=float, nargs=4, metavar=("X1", "Z1", "X2", "Z2"),
+                   help="two points of the design slope line, m (checked against --slope)")
+    p.add_argument("--fit-slope", action="store_true",
+                   help="fit the design slope line to the initial survey near the SWL (its fit error is printed)")
+    p.add_argument("--stretch", type=float, nargs=2, metavar=("Y0", "Y1"),
+                   help="the tested stretch (characterisation width), y from Y0 to Y1, m (default: the whole "
+                        "surveyed width)")
+    p.add_argument("--active-zone", type=float, nargs=2, metavar=("BELOW", "ABOVE"), default=None,
+                   help="count erosion from BELOW Dn50 under the SWL to ABOVE Dn50 over it, along the slope "
+                        "(default 6 4)")
+    p.add_argument("--spacing", type=float, default=0.005, help="grid spacing for surveys, m (default 0.005)")
+    p.add_argument("--max-gap", type=float, default=0.01, help="fill holes up to this size, m (default 0.01)")
+    p.add_argument("--profile-spacing", type=float, help="distance between profiles, m (default Dn50)")
+    p.add_argument("-o", "--output", required=True, help="report folder")
+    p.set_defaults(func=_cmd_damage)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Run the command line; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0
+    import jax
+
+    _use_compilation_cache(jax)
+    try:
+        with jax.enable_x64(True):  # geometry in float64, for this command only
+            return args.func(args)
+    except (JaxStereoError, OSError) as err:
+        print(f"jaxstereo {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+def _use_compilation_cache(jax) -> None:
+    """Keep compiled functions on disk between commands (JAX's persistent cache), so that a second command
+    on this machine compiles nothing. The folder is $JAXSTEREO_CACHE_DIR, or jaxstereo/jax under
+    $XDG_CACHE_HOME (~/.cache); JAXSTEREO_CACHE_DIR=off disables it. Set by the command line only: the
+    library never changes JAX's configuration."""
+    import os
+
+    folder = os.environ.get("JAXSTEREO_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxstereo", "jax")
+    if folder.lower() == "off":
+        return
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError:
+        return  # a read-only home: run without the cache rather than fail
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

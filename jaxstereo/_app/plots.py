@@ -1,0 +1,51 @@
+"""Figures people look at (matplotlib, PNG, written atomically)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .io import atomic_path
+
+
+def new_figure(nrows: int = 1, ncols: int = 1, figsize=(6.4, 4.8)):
+    """A matplotlib `Figure` and its axes, with a constrained layout.
+
+    Built with matplotlib's object API, not pyplot: the library never touches pyplot's global state or
+    backend (a user's notebook keeps its own), and drawing needs no GUI.
+    """
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, layout="constrained")
+    return fig, fig.subplots(nrows, ncols)
+
+
+def save_figure(fig, path, dpi: int = 120) -> None:
+    """Save a matplotlib figure as PNG to `path` atomically."""
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+
+
+def plot_calibration_errors(stereo, path, names: list[str] | None = None) -> None:
+    """Bar chart of per-view reprojection RMS (left, right, stereo pairs), dropped views marked."""
+    n = max([*stereo.left.views, *stereo.left.dropped, *stereo.right.views, *stereo.right.dropped,
+             *stereo.pairs, *stereo.missing, 0]) + 1
+    x = np.arange(n)
+    fig, ax = new_figure(figsize=(max(6.0, 0.45 * n + 2), 3.8))
+    for offset, cal, label, colour in ((-0.27, stereo.left, "left", "tab:blue"), (0.0, stereo.right, "right", "tab:orange")):
+        values = np.full(n, np.nan)
+        values[cal.views] = cal.view_rms_px
+        ax.bar(x + offset, values, width=0.27, label=f"{label} ({cal.rms_px:.3f} px)", color=colour)
+        for d in cal.dropped:
+            ax.annotate("dropped", (d + offset, 0), rotation=90, fontsize=7, ha="center", va="bottom", color=colour)
+    values = np.full(n, np.nan)
+    values[stereo.pairs] = stereo.pair_rms_px
+    ax.bar(x + 0.27, values, width=0.27, label=f"stereo ({stereo.rms_px:.3f} px)", color="tab:green")
+    for m in stereo.missing:
+        ax.annotate("no board", (m, 0), rotation=90, fontsize=7, ha="center", va="bottom", color="tab:red")
+    ax.set_xticks(x)
+    ax.set_xticklabels(names if names is not None else [str(i) for i in x], rotation=60, fontsize=7, ha="right")
+    ax.set_ylabel("reprojection RMS (px)")
+    ax.set_title("Calibration: reprojection error per view")
+    ax.legend(fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
+    save_figure(fig, path)

@@ -1,0 +1,1 @@
+"""Calibration: boards, corner detection, intrinsics and stereo pose, the rig and its world frame."""

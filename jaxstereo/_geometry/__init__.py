@@ -1,0 +1,1 @@
+"""Geometry: poses, cameras, the water interface, exact and first-order refraction, triangulation."""

@@ -1,0 +1,37 @@
+"""Triangulation of ray pairs: the least-squares point closest to two rays."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from .precision import float64
+
+
+@float64
+def triangulate_rays(
+    origin_a: Float[ArrayLike, "*#batch 3"],
+    direction_a: Float[ArrayLike, "*#batch 3"],
+    origin_b: Float[ArrayLike, "*#batch 3"],
+    direction_b: Float[ArrayLike, "*#batch 3"],
+) -> tuple[Float[Array, "*#batch 3"], Float[Array, "*#batch"]]:
+    """Midpoint of the shortest segment between two rays (the least-squares point for two rays).
+
+    **Arguments:** ray origins and unit directions, each (..., 3), world metres.
+
+    **Returns:** `(points, gap)`: the midpoints (..., 3) and the length (...,) metres of the shortest
+    segment between the two lines (zero for rays that meet). Parallel rays give `gap = inf`.
+    """
+    w = origin_a - origin_b
+    b = jnp.sum(direction_a * direction_b, axis=-1)
+    d = jnp.sum(direction_a * w, axis=-1)
+    e = jnp.sum(direction_b * w, axis=-1)
+    denom = 1.0 - b * b
+    parallel = denom <= 1e-15
+    safe = jnp.where(parallel, 1.0, denom)
+    sa = (b * e - d) / safe
+    sb = (e - b * d) / safe
+    pa = origin_a + sa[..., None] * direction_a
+    pb = origin_b + sb[..., None] * direction_b
+    gap = jnp.where(parallel, jnp.inf, jnp.linalg.norm(pa - pb, axis=-1))
+    return 0.5 * (pa + pb), gap

@@ -1,0 +1,1 @@
+"""Stereo: rectification, dense matching, exact reconstruction, the water-level refinement, surveys."""

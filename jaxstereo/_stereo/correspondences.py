@@ -1,0 +1,103 @@
+"""Correspondences for the water-level refinement from the dense matching: many, spread over the image.
+
+The refinement needs correspondences everywhere, the faintly textured floor included, where a feature
+detector finds few. The dense matching of `reconstruct` (one rectification, colour SGBM, each match put
+on its exact epipolar curve at the guessed level) gives one match per textured pixel; one match per cell
+of a regular grid over the left image is kept. SGBM measures a match along the rectified row only, and
+its sub-pixel values lean towards whole pixels (a bias that does not average out on a flat floor, and
+that the level's sensitivity to the floor triples), so each kept match is then measured in both image
+directions by Lucas-Kanade on a 31 x 31 window (OpenCV's pyramidal tracker, one level), forward and
+back: matches that move more than 1.5 px from SGBM's, or do not come back within 0.2 px, are dropped.
+On the POV-Ray flume's board this halves the error (0.16 px RMS against 0.28 px) and removes the bias.
+"""
+
+from __future__ import annotations
+
+import cv2
+import jax
+import numpy as np
+
+from .._calibration.rig import Rig
+from .._geometry.camera import Camera
+from .._geometry.interface import Interface
+from .._geometry.precision import float64
+from .rectify import Rectification, rectified_rays, rectify
+
+
+@jax.jit
+def _real_pixels(rect: Rectification, left: Camera, right: Camera, rl, rr):
+    """Real pixels (n, 2) of both sides of rectified matches."""
+    out = []
+    for side, cam, px in ((0, left, rl), (1, right, rr)):
+        origin, direction, surface = rectified_rays(rect, cam, side, px)
+        out.append(cam.project(surface if rect.mode == "water" else origin + direction))
+    return out[0], out[1]
+
+
+def spread_over_grid(pixels: np.ndarray, size: tuple[int, int], max_points: int) -> np.ndarray:
+    """Indices of at most `max_points` of `pixels` (n, 2), one per cell of a regular grid over an image of
+    `size` (width, height): in each cell the one nearest its centre."""
+    w, h = size
+    cell = max(1.0, float(np.sqrt(w * h / max(max_points, 1))))
+    ij = np.floor(pixels / cell).astype(np.int64)
+    flat = ij[:, 1] * (int(w / cell) + 2) + ij[:, 0]
+    centre = (ij + 0.5) * cell
+    order = np.lexsort((np.sum((pixels - centre) ** 2, axis=1), flat))
+    chosen = order[np.unique(flat[order], return_index=True)[1]]
+    if chosen.size > max_points:
+        chosen = chosen[np.linspace(0, chosen.size - 1, max_points).astype(int)]
+    return np.sort(chosen)
+
+
+@float64
+def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: Rig, level_guess: float,
+                          max_points: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    """Correspondences (real pixels) from the dense matching at the guessed water level, spread over the image.
+
+    **Arguments:** the wet pair (uint8 RGB or grey, the rig's size); the rig; `level_guess` metres;
+    `max_points` at most this many, one per grid cell.
+
+    **Returns:** `(left_pixels, right_pixels)`, each (n, 2) float64 pixels, measured in both directions.
+    """
+    from .reconstruct import ReconstructOptions, _chunked, _interface_for, _match, _pairs_from_disparity, _row_offsets
+
+    interface: Interface = _interface_for(rig, level_guess)
+    z_range = (-0.03, float(interface.level) + 0.4)
+    rect = rectify(rig.left, rig.right, interface, "water")
+    _, _, disparity, search, _ = _match(rect, rig, interface, left_image, right_image, z_range, ReconstructOptions())
+    offset = _row_offsets(rect, rig, interface, disparity, search)
+    rl, rr, v, u = _pairs_from_disparity(disparity)
+    if rl.shape[0] == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    rr[:, 1] += offset[v, u]
+    pick = spread_over_grid(rl, rect.size, max_points)
+    pl, pr = _chunked(_real_pixels, (rect, rig.left, rig.right), rl[pick], rr[pick])  # fixed size: compiled once
+    w, h = rig.image_size
+    margin = KLT_WINDOW // 2 + 1
+    inside = np.all((pl >= margin) & (pl <= [w - 1 - margin, h - 1 - margin]) & (pr >= margin)
+                    & (pr <= [w - 1 - margin, h - 1 - margin]), axis=1)
+    return measure_both_ways(left_image, right_image, pl[inside], pr[inside])
+
+
+KLT_WINDOW = 31
+KLT_MAX_MOVE_PX = 1.5
+KLT_ROUND_TRIP_PX = 0.2
+
+
+def measure_both_ways(left_image: np.ndarray, right_image: np.ndarray, left_pixels: np.ndarray,
+                      right_pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel right pixels of matches in both image directions: Lucas-Kanade from the given right pixels,
+    kept when it moved less than `KLT_MAX_MOVE_PX` and tracking back lands within `KLT_ROUND_TRIP_PX` of the
+    left pixel. **Returns:** the kept `(left_pixels, right_pixels)`."""
+    grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in (left_image, right_image)]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-3)
+    options = dict(winSize=(KLT_WINDOW, KLT_WINDOW), maxLevel=0, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    if left_pixels.shape[0] == 0:
+        return left_pixels, right_pixels
+    a, b = left_pixels.astype(np.float32), right_pixels.astype(np.float32)
+    fwd, ok_f, _ = cv2.calcOpticalFlowPyrLK(grey[0], grey[1], a, b.copy(), **options)
+    back, ok_b, _ = cv2.calcOpticalFlowPyrLK(grey[1], grey[0], fwd, a.copy(), **options)
+    keep = (ok_f.ravel() == 1) & (ok_b.ravel() == 1)
+    keep &= np.linalg.norm(fwd - b, axis=1) < KLT_MAX_MOVE_PX
+    keep &= np.linalg.norm(back - a, axis=1) < KLT_ROUND_TRIP_PX
+    return left_pixels[keep], fwd[keep].astype(np.float64)

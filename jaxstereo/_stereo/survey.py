@@ -1,0 +1,142 @@
+"""Surveys: reconstructed point clouds, their `.npz` file, `.ply` export and preview figure."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .._app.io import atomic_path
+from .._geometry.errors import JaxStereoError
+from .._geometry.types import PathLike
+
+
+@dataclasses.dataclass(frozen=True)
+class Survey:
+    """A reconstructed point cloud in the world frame.
+
+    **Fields:** `points` (N, 3) world metres; `colors` (N, 3) uint8 RGB; `pixels` (N, 2) left-image
+    pixels; `submerged` (N,) bool; `rig_json` the rig used (JSON text); `model` "exact",
+    "first-order" or "none"; `water_level` metres (NaN for a dry survey).
+    """
+
+    points: np.ndarray
+    colors: np.ndarray
+    pixels: np.ndarray
+    submerged: np.ndarray
+    rig_json: str
+    model: str
+    water_level: float
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+def save_survey(survey: Survey, path: PathLike) -> None:
+    """Write the survey `.npz` atomically."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise JaxStereoError(f"survey file {str(path)!r} must end in .npz")
+    with atomic_path(path) as tmp:
+        np.savez(tmp, points=survey.points.astype(np.float64), colors=survey.colors.astype(np.uint8),
+                 pixels=survey.pixels.astype(np.float32), submerged=survey.submerged.astype(bool),
+                 rig=np.array(survey.rig_json), model=np.array(survey.model),
+                 water_level=np.array(survey.water_level, dtype=np.float64))
+
+
+def load_survey(path: PathLike) -> Survey:
+    """Read a survey `.npz`; `JaxStereoError` names the file and what is wrong with it."""
+    from .._app.io import read_npz
+
+    return survey_from_fields(read_npz(path, "survey"), path)
+
+
+def survey_from_fields(fields: dict, path) -> Survey:
+    """A `Survey` from the arrays of a survey `.npz` (already read); `path` names it in errors."""
+    for key in ("points", "colors", "pixels", "submerged"):
+        if key not in fields:
+            raise JaxStereoError(f"survey {str(path)!r} has no {key!r} array")
+    points = np.asarray(fields["points"], dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise JaxStereoError(f"survey {str(path)!r}: points must have shape (N, 3), got {points.shape}")
+    bad = int(np.count_nonzero(~np.all(np.isfinite(points), axis=1)))
+    if bad:
+        raise JaxStereoError(f"survey {str(path)!r} holds {bad} point(s) with NaN or infinite coordinates")
+    return Survey(points, np.asarray(fields["colors"]), np.asarray(fields["pixels"]),
+                  np.asarray(fields["submerged"], dtype=bool), str(fields.get("rig", "")),
+                  str(fields.get("model", "")), float(fields.get("water_level", np.nan)))
+
+
+def save_ply(survey: Survey, path: PathLike) -> None:
+    """Write the points and colours as a binary little-endian PLY, atomically."""
+    n = len(survey)
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment jaxstereo survey, model {survey.model}, world metres\n"
+              f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
+    record = np.zeros(n, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    record["x"], record["y"], record["z"] = survey.points.T
+    record["r"], record["g"], record["b"] = survey.colors.T
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(header)
+            fh.write(record.tobytes())
+
+
+def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title: str = "") -> None:
+    """Two panels: height in the left image's pixels, and a top view (x, y) coloured by height."""
+    from .._app.plots import new_figure, save_figure
+    fig, axes = new_figure(1, 2, figsize=(13, 4.8))
+    w, h = image_size
+    z = survey.points[:, 2]
+    if len(survey):
+        vmin, vmax = np.percentile(z, [1, 99])
+    else:
+        vmin, vmax = 0.0, 1.0
+    step = max(1, int(np.ceil(max(w, h) / 1000)))  # at most ~1000 px drawn: the figure is ~800 px wide anyway
+    gw, gh = -(-w // step), -(-h // step)
+    grid = np.full((gh, gw), np.nan)
+    px = np.floor((survey.pixels + 0.5) / step).astype(int)
+    ok = (px[:, 0] >= 0) & (px[:, 0] < gw) & (px[:, 1] >= 0) & (px[:, 1] < gh)
+    grid[px[ok, 1], px[ok, 0]] = z[ok]
+    im = axes[0].imshow(grid, cmap="viridis", vmin=vmin, vmax=vmax, extent=(-0.5, gw * step - 0.5, gh * step - 0.5, -0.5),
+                        interpolation="nearest")
+    axes[0].set_title("height (m) in the left image")
+    axes[0].set_xlabel("u (px)")
+    axes[0].set_ylabel("v (px)")
+    top, extent = _top_view(survey.points)
+    axes[1].imshow(top, cmap="viridis", vmin=vmin, vmax=vmax, origin="lower", extent=extent, interpolation="nearest")
+    if np.isfinite(survey.water_level) and survey.submerged.any():
+        axes[1].plot([], [], "s", color="tab:blue", label=f"{100 * survey.submerged.mean():.0f}% submerged")
+        axes[1].legend(loc="upper right", fontsize=8)
+    axes[1].set_aspect("equal")
+    axes[1].set_xlabel("x (m)")
+    axes[1].set_ylabel("y (m)")
+    axes[1].set_title("top view")
+    fig.colorbar(im, ax=axes, label="z (m)", shrink=0.85)
+    fig.suptitle(title or f"survey: {len(survey)} points, model {survey.model}")
+    save_figure(fig, path)
+
+
+def _top_view(points: np.ndarray, cells: int = 500):
+    """Mean height on a regular (x, y) grid of about `cells` cells along the longer side (NaN where empty);
+    returns `(image, extent)` for `imshow(origin="lower")`. Drawing an image, not a scatter of every point,
+    keeps the preview fast for millions of points."""
+    if points.shape[0] == 0:
+        return np.full((1, 1), np.nan), (0.0, 1.0, 0.0, 1.0)
+    lo = points[:, :2].min(axis=0)
+    hi = points[:, :2].max(axis=0)
+    size = max(float(np.max(hi - lo)) / cells, 1e-6)
+    shape = np.maximum(np.ceil((hi - lo) / size).astype(int), 1)
+    ij = np.minimum(((points[:, :2] - lo) / size).astype(int), shape - 1)
+    flat = ij[:, 1] * shape[0] + ij[:, 0]
+    count = np.bincount(flat, minlength=shape[0] * shape[1])
+    total = np.bincount(flat, weights=points[:, 2], minlength=shape[0] * shape[1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        image = np.where(count > 0, total / count, np.nan).reshape(shape[1], shape[0])
+    return image, (lo[0], lo[0] + shape[0] * size, lo[1], lo[1] + shape[1] * size)
+
+
+def survey_summary_json(summary: dict) -> str:
+    return json.dumps(summary, indent=2, default=float)

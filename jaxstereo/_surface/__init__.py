@@ -1,0 +1,1 @@
+"""Surfaces: DEMs from surveys, profiles, and the damage of an armour layer."""

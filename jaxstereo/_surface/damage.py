@@ -1,0 +1,227 @@
+"""Damage of an armour layer from an initial and a final profile or DEM (the paper's section 4.2).
+
+Profile method: both profiles are rotated into the frame of the design slope (X' along the slope,
+Z' normal to it, outwards), their abscissae merged, and the difference `final - initial` swept for
+sign changes. Each negative stretch is an erosion zone with its area `A_e`, length `L_e` (along the
+slope) and maximum depth `d_e` (normal to the slope); the largest is reported.
+`S = A_e / Dn50^2`, `E2D = d_e / Dn50`. Over a stretch, 3-D volumes and `E3D` come from DEM differences.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import numpy as np
+from jaxtyping import ArrayLike
+from scipy import ndimage
+
+from .._geometry.errors import JaxStereoError
+from .._geometry.types import Vector2
+from .grid import DEM
+
+# Damage levels for rock armour (van der Meer): S at start of damage, intermediate range, failure, by slope
+# (cotangent), from 1:1.5 to 1:6.
+_DAMAGE_LEVELS = {1.5: (2.0, (3.0, 5.0), 8.0), 2.0: (2.0, (4.0, 6.0), 8.0), 3.0: (2.0, (6.0, 9.0), 12.0),
+                  4.0: (3.0, (8.0, 12.0), 17.0), 6.0: (3.0, (8.0, 12.0), 17.0)}
+
+
+def parse_slope(text: str | float) -> float:
+    """Slope as its cotangent: '1:2' (vertical:horizontal), '2' or 2.0 -> 2.0; `JaxStereoError` otherwise."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        value = float(text)
+    else:
+        m = re.fullmatch(r"\s*(?:(\d+(?:\.\d*)?)\s*:\s*)?(\d+(?:\.\d*)?)\s*", str(text))
+        if not m:
+            raise JaxStereoError(f"slope {text!r} does not parse: give the cotangent (e.g. 2) or V:H (e.g. 1:2)")
+        value = float(m.group(2)) / (float(m.group(1)) if m.group(1) else 1.0)
+    if not np.isfinite(value) or value <= 0:
+        raise JaxStereoError(f"slope {text!r} must be positive (cotangent of the slope angle)")
+    return value
+
+
+@dataclasses.dataclass(frozen=True)
+class Zone:
+    """One erosion (or accretion) zone: `start`, `end` abscissae along the slope (m), `length` (m),
+    `area` (m^2, positive), `depth` (m, the largest normal distance between the profiles)."""
+
+    start: float
+    end: float
+    length: float
+    area: float
+    depth: float
+
+
+@dataclasses.dataclass(frozen=True)
+class ProfileDamage:
+    """Damage of one cross-section: every erosion and accretion zone, and the largest erosion zone's
+    `A_e` (m^2), `L_e` (m), `d_e` (m), with `S` and `E2D` for the given Dn50; `swept` the (start, end)
+    abscissae along the slope (m) that the sweep covered (the active zone where one was given)."""
+
+    erosion: list[Zone]
+    accretion: list[Zone]
+    A_e: float
+    L_e: float
+    d_e: float
+    S: float
+    E2D: float
+    swept: tuple[float, float] = (float("nan"), float("nan"))
+
+
+def to_slope_frame(x, z, cot: float, origin=(0.0, 0.0)):
+    """Rotate profile points (x, z) into the design-slope frame: X' along the slope (rising with x),
+    Z' normal to it (positive outside the structure), with `origin` a point of the slope line."""
+    norm = np.hypot(cot, 1.0)
+    t = np.array([cot, 1.0]) / norm
+    n = np.array([-1.0, cot]) / norm
+    dx = np.asarray(x, dtype=np.float64) - origin[0]
+    dz = np.asarray(z, dtype=np.float64) - origin[1]
+    return dx * t[0] + dz * t[1], dx * n[0] + dz * n[1]
+
+
+def _zones(X, D, sign):
+    """Zones where `sign * D > 0` on the piecewise-linear difference D(X), crossing points inserted."""
+    zones = []
+    inside = False
+    area = depth = start = 0.0
+    for k in range(len(X)):
+        v = sign * D[k]
+        if k > 0:
+            v0 = sign * D[k - 1]
+            x0, x1 = X[k - 1], X[k]
+            if (v0 > 0) != (v > 0) and v0 != v:
+                xc = x0 + (x1 - x0) * v0 / (v0 - v)  # where the difference crosses zero
+                if v0 > 0:  # leaving a zone: add the triangle up to the crossing
+                    area += 0.5 * v0 * (xc - x0)
+                    zones.append(Zone(start, xc, xc - start, area, depth))
+                    inside = False
+                else:  # entering a zone at the crossing
+                    inside, start, area, depth = True, xc, 0.5 * v * (x1 - xc), max(v, 0.0)
+                continue
+            if inside:
+                area += 0.5 * (v0 + v) * (x1 - x0)
+                depth = max(depth, v)
+        elif v > 0:
+            inside, start, area, depth = True, X[0], 0.0, v
+    if inside:
+        zones.append(Zone(start, X[-1], X[-1] - start, area, depth))
+    return zones
+
+
+def slope_abscissa(z: float, cot: float, origin=(0.0, 0.0)) -> float:
+    """Abscissa along the design slope (m, the frame of `to_slope_frame`) of the slope line's point at height z."""
+    return (z - origin[1]) * float(np.hypot(cot, 1.0))
+
+
+def profile_damage(initial: tuple[ArrayLike, ArrayLike], final: tuple[ArrayLike, ArrayLike], dn50: float, cot: float,
+                   origin: Vector2 = (0.0, 0.0),
+                   active_zone: tuple[float, float] | None = None) -> ProfileDamage:
+    """Damage between two cross-sections, as the paper's section 4.2 sweeps them.
+
+    **Arguments:**
+
+    - `initial`, `final`: `(x, z)` pairs of arrays (metres) along the profile (NaNs are dropped).
+    - `dn50`: nominal diameter of the armour units, metres.
+    - `cot`: the design slope's cotangent (2 for 1:2).
+    - `origin`: a point `(x, z)` on the design slope line.
+    - `active_zone`: `(start, end)` abscissae along the slope (metres, see `slope_abscissa`): erosion and
+      accretion are counted there only (the zone around the still water level); None: wherever the
+      profiles overlap.
+    """
+    if not (np.isfinite(dn50) and dn50 > 0):
+        raise JaxStereoError(f"Dn50 must be positive (metres), got {dn50}")
+    frames = []
+    for name, (x, z) in (("initial", initial), ("final", final)):
+        x, z = np.asarray(x, dtype=np.float64), np.asarray(z, dtype=np.float64)
+        ok = np.isfinite(x) & np.isfinite(z)
+        if ok.sum() < 2:
+            raise JaxStereoError(f"the {name} profile has fewer than 2 valid points")
+        X, Z = to_slope_frame(x[ok], z[ok], cot, origin)
+        order = np.argsort(X, kind="stable")
+        frames.append((X[order], Z[order]))
+    (Xi, Zi), (Xf, Zf) = frames
+    lo, hi = max(Xi[0], Xf[0]), min(Xi[-1], Xf[-1])
+    if hi <= lo:
+        raise JaxStereoError("the initial and final profiles do not overlap along the slope")
+    if active_zone is not None:
+        lo, hi = max(lo, active_zone[0]), min(hi, active_zone[1])
+        if hi <= lo:
+            raise JaxStereoError(f"the profiles do not reach the active zone ({active_zone[0]:.3f} to "
+                                 f"{active_zone[1]:.3f} m along the slope)")
+    X = np.unique(np.concatenate([Xi, Xf, [lo, hi]]))
+    X = X[(X >= lo) & (X <= hi)]
+    D = np.interp(X, Xf, Zf) - np.interp(X, Xi, Zi)
+    erosion = _zones(X, D, -1.0)
+    accretion = _zones(X, D, +1.0)
+    biggest = max(erosion, key=lambda zn: zn.area) if erosion else Zone(0.0, 0.0, 0.0, 0.0, 0.0)
+    return ProfileDamage(erosion, accretion, biggest.area, biggest.length, biggest.depth,
+                         biggest.area / dn50**2, biggest.depth / dn50, (float(lo), float(hi)))
+
+
+def damage_thresholds(cot: float) -> tuple[float, tuple[float, float], float]:
+    """Van der Meer's damage levels of rock armour for a slope: (start of damage, (intermediate range),
+    failure) in S. Tabulated for slopes 1:1.5, 1:2, 1:3, 1:4 and 1:6; between them, linear in the
+    cotangent. Steeper or flatter slopes are outside the table: `JaxStereoError`."""
+    slopes = sorted(_DAMAGE_LEVELS)
+    if not slopes[0] - 1e-9 <= cot <= slopes[-1] + 1e-9:
+        raise JaxStereoError(f"van der Meer's damage levels cover slopes from 1:{slopes[0]:g} to 1:{slopes[-1]:g}; "
+                             f"the slope 1:{cot:g} is outside them")
+    rows = [_DAMAGE_LEVELS[c] for c in slopes]
+    table = np.array([[r[0], r[1][0], r[1][1], r[2]] for r in rows])
+    start, lo, hi, failure = (float(np.interp(cot, slopes, table[:, k])) for k in range(4))
+    return start, (lo, hi), failure
+
+
+def damage_level(S: float, cot: float) -> str:
+    """Damage level of rock armour from S on a slope of cotangent `cot` (see `damage_thresholds`)."""
+    start, (lo, hi), failure = damage_thresholds(cot)
+    if S < start:
+        return "no damage"
+    if S < lo:
+        return "start of damage"
+    if S <= hi:
+        return "intermediate damage"
+    if S < failure:
+        return "advanced damage"
+    return "failure"
+
+
+@dataclasses.dataclass(frozen=True)
+class DemDamage:
+    """3-D damage from a DEM difference: `eroded_m3`, `accreted_m3`, and `E3D` (the largest erosion
+    depth averaged over a circle of diameter Dn50, divided by Dn50) at `E3D_xy`; `E3D` is None (not
+    measurable) when no Dn50 circle is covered by data in both DEMs."""
+
+    eroded_m3: float
+    accreted_m3: float
+    E3D: float | None
+    E3D_xy: tuple[float, float] | None
+
+
+def dem_damage(before: DEM, after: DEM, dn50: float) -> DemDamage:
+    """Eroded and accreted volumes and E3D (Hofland et al.) from two DEMs on the same grid."""
+    if before.z.shape != after.z.shape or not np.allclose(before.x, after.x) or not np.allclose(before.y, after.y):
+        raise JaxStereoError("the two DEMs are not on the same grid")
+    if not (np.isfinite(dn50) and dn50 > 0):
+        raise JaxStereoError(f"Dn50 must be positive (metres), got {dn50}")
+    diff = after.z - before.z
+    valid = np.isfinite(diff)
+    if not valid.any():
+        raise JaxStereoError("the two DEMs do not overlap (no cell has data in both)")
+    cell = before.spacing**2
+    eroded = float(-np.sum(np.minimum(diff[valid], 0.0)) * cell)
+    accreted = float(np.sum(np.maximum(diff[valid], 0.0)) * cell)
+    radius = dn50 / 2 / before.spacing
+    r = int(np.ceil(radius))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disk = (xx**2 + yy**2 <= radius**2).astype(np.float64)
+    depth = np.where(valid, -diff, 0.0)
+    total = ndimage.convolve(depth, disk, mode="constant")
+    count = ndimage.convolve(valid.astype(np.float64), disk, mode="constant")
+    full = count >= 0.9 * disk.sum()
+    if not full.any():
+        return DemDamage(eroded, accreted, None, None)
+    mean = np.where(full, total / np.maximum(count, 1), -np.inf)
+    k = int(np.argmax(mean))
+    i, j = np.unravel_index(k, mean.shape)
+    return DemDamage(eroded, accreted, float(max(mean[i, j], 0.0) / dn50), (float(before.x[j]), float(before.y[i])))

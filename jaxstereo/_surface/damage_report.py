@@ -1,0 +1,322 @@
+"""Damage over a stretch of breakwater: per-profile values, averaged profile, 3-D volumes, report files."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from .._app.io import write_text_atomic
+from .._geometry.errors import JaxStereoError
+from .._geometry.types import PathLike, Vector2
+from .damage import DemDamage, ProfileDamage, damage_level, dem_damage, profile_damage, slope_abscissa, to_slope_frame
+from .grid import DEM
+
+ACTIVE_ZONE_DN50 = (6.0, 4.0)  # erosion counted from 6 Dn50 below to 4 Dn50 above the SWL, along the slope
+
+
+@dataclasses.dataclass(frozen=True)
+class StretchDamage:
+    """Damage of a tested stretch between two DEMs.
+
+    **Fields:** `profiles` (y (m), ProfileDamage) per cross-shore section inside the stretch; `skipped`
+    (y (m), reason) for the sections that could not be computed; `averaged` the damage of the profile
+    averaged over the stretch's width (the stretch's characteristic S); `S_mean` mean of per-profile S
+    above `threshold`; `S_max`, `L_e_max`, `d_e_max` over the profiles; `volumes` (DemDamage, E3D None
+    when not measurable); `level` the damage level of the characteristic S on this slope; `stretch`
+    (y0, y1) metres and `whole_width` (True when no stretch was given: the whole surveyed width);
+    `active_zone` (z_low, z_high) metres: the heights on the design slope between which erosion is
+    counted; the design slope (`cot`, `origin`), `dn50`, `swl`.
+    """
+
+    profiles: list[tuple[float, ProfileDamage]]
+    skipped: list[tuple[float, str]]
+    averaged: ProfileDamage
+    S_mean: float
+    S_max: float
+    L_e_max: float
+    d_e_max: float
+    volumes: DemDamage
+    level: str
+    cot: float
+    origin: tuple[float, float]
+    dn50: float
+    swl: float
+    threshold: float
+    stretch: tuple[float, float]
+    whole_width: bool
+    active_zone: tuple[float, float]
+
+    def to_dict(self) -> dict:
+        return {
+            "dn50_m": self.dn50, "slope_cot": self.cot, "swl_m": self.swl,
+            "design_slope_origin_xz_m": list(self.origin),
+            "stretch_y_m": list(self.stretch), "whole_surveyed_width": self.whole_width,
+            "active_zone_z_m": list(self.active_zone),
+            "averaged_profile": {"A_e_m2": self.averaged.A_e, "L_e_m": self.averaged.L_e, "d_e_m": self.averaged.d_e,
+                                 "S": self.averaged.S, "E2D": self.averaged.E2D},
+            "S_mean_above_threshold": self.S_mean, "S_threshold": self.threshold, "S_max": self.S_max,
+            "L_e_max_m": self.L_e_max, "d_e_max_m": self.d_e_max,
+            "eroded_volume_m3": self.volumes.eroded_m3, "accreted_volume_m3": self.volumes.accreted_m3,
+            "E3D": self.volumes.E3D, "E3D_at_xy_m": list(self.volumes.E3D_xy) if self.volumes.E3D_xy else None,
+            "damage_level": self.level,
+            "profiles": [{"y_m": y, "A_e_m2": p.A_e, "L_e_m": p.L_e, "d_e_m": p.d_e, "S": p.S, "E2D": p.E2D,
+                          "damage_level": damage_level(p.S, self.cot), "erosion_zones": len(p.erosion),
+                          "accretion_zones": len(p.accretion)} for y, p in self.profiles],
+            "profiles_not_computed": [{"y_m": y, "reason": why} for y, why in self.skipped],
+        }
+
+
+def fit_design_slope(x: np.ndarray, z: np.ndarray, cot: float, swl: float, dn50: float) -> tuple[tuple[float, float], float]:
+    """The design slope line `z = (x - x0) / cot` fitted (median) to a profile's points within 3 Dn50 of the
+    still water level. **Returns:** `((x0, 0), rms)`: a point of the line and the RMS distance (m) of those
+    points from it, normal to the slope."""
+    ok = np.isfinite(z) & (np.abs(z - swl) <= 3 * dn50)
+    if ok.sum() < 3:
+        raise JaxStereoError("the initial profile has too few points near the still water level to fit the "
+                             "design slope; give its origin instead")
+    x0 = float(np.median(x[ok] - cot * z[ok]))
+    normal = (z[ok] - (x[ok] - x0) / cot) * cot / np.hypot(cot, 1.0)
+    return (x0, 0.0), float(np.sqrt(np.mean(normal**2)))
+
+
+def despike(dem: DEM, tolerance_m: float) -> DEM:
+    """Remove single-cell spikes: a cell more than `tolerance_m` above all of its 8 neighbours, or below all
+    of them, takes the nearest neighbour value. Such cells are survey outliers (mismatches at the edges of
+    armour units), not surface; steep but continuous surfaces (the walls of a hole) are left alone."""
+    z = dem.z
+    padded = np.pad(z, 1, constant_values=np.nan)
+    shifts = [padded[i : i + z.shape[0], j : j + z.shape[1]] for i in range(3) for j in range(3) if (i, j) != (1, 1)]
+    stack = np.stack(shifts)
+    finite = np.isfinite(stack)
+    high = np.where(finite, stack, -np.inf).max(axis=0)
+    low = np.where(finite, stack, np.inf).min(axis=0)
+    enough = finite.sum(axis=0) >= 5
+    peak = enough & np.isfinite(z) & (z - high > tolerance_m)
+    pit = enough & np.isfinite(z) & (low - z > tolerance_m)
+    return DEM(dem.x, dem.y, np.where(peak, high, np.where(pit, low, z)), dem.spacing)
+
+
+def profiler_foot(dem: DEM, radius_m: float) -> DEM:
+    """The surface as a profiler's ball foot of radius `radius_m` sees it: single-cell spikes removed
+    (`despike`), then a grey closing with that ball, which bridges crevices narrower than the foot
+    between armour units (NaN cells stay NaN and do not pull their neighbours down)."""
+    r = int(np.floor(radius_m / dem.spacing))
+    if r < 1:
+        return dem
+    dem = despike(dem, radius_m)
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1] * dem.spacing
+    inside = xx**2 + yy**2 <= radius_m**2
+    ball = np.where(inside, np.sqrt(np.clip(radius_m**2 - xx**2 - yy**2, 0.0, None)), 0.0)
+    missing = ~np.isfinite(dem.z)
+    big = 1e6
+    raised = ndimage.grey_dilation(np.where(missing, -big, dem.z), footprint=inside, structure=ball)
+    raised = np.where(raised < -big / 2, big, raised)
+    closed = ndimage.grey_erosion(raised, footprint=inside, structure=ball)
+    return DEM(dem.x, dem.y, np.where(missing, np.nan, closed), dem.spacing)
+
+
+def _column_mean(z: np.ndarray) -> np.ndarray:
+    """Mean over rows ignoring NaN; NaN for columns without data (no warning)."""
+    count = np.isfinite(z).sum(axis=0)
+    total = np.nansum(z, axis=0)
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+ON_SLOPE_DN50 = 1.0  # an initial cross-section follows the design slope when its median distance is within 1 Dn50
+
+
+def _off_the_slope(x, z, cot, origin, zone, dn50) -> str:
+    """Why an initial cross-section is not one of the structure's (empty when it is): over the active zone,
+    its median distance from the design slope line must be within `ON_SLOPE_DN50` Dn50. Sections past the
+    sides of the model (the bare floor, a flume wall) fail this."""
+    ok = np.isfinite(z)
+    X, Z = to_slope_frame(x[ok], z[ok], cot, origin)
+    inside = (X >= zone[0]) & (X <= zone[1])
+    if inside.sum() < 3:
+        return "no initial data in the active zone"
+    distance = float(np.median(np.abs(Z[inside])))
+    if distance > ON_SLOPE_DN50 * dn50:
+        return (f"the initial section lies {1e3 * distance:.0f} mm (median) off the design slope: not a "
+                "cross-section of the structure")
+    return ""
+
+
+def _section_rows(before: DEM, after: DEM, cot, origin, zone, dn50, stretch):
+    """The DEM rows that are cross-sections of the structure inside the stretch, the (y, reason) of those left
+    out, and the stretch's extent (y0, y1)."""
+    both = np.isfinite(before.z) & np.isfinite(after.z)
+    covered = both.sum(axis=1) >= 0.2 * both.shape[1]
+    if not covered.any():
+        raise JaxStereoError("the before and after surfaces do not overlap (no cross-section with data in both)")
+    reasons = {}
+    for r in np.nonzero(covered)[0]:
+        why = _off_the_slope(before.x, before.z[r], cot, origin, zone, dn50)
+        if why:
+            reasons[r] = why
+    structure = covered.copy()
+    structure[list(reasons)] = False
+    if not structure.any():
+        raise JaxStereoError(f"no cross-section of the initial survey follows the design slope: {next(iter(reasons.values()))}")
+    # Sections within Dn50 of the structure's sides see its side faces, where a lateral shift between the
+    # surveys would read as erosion: they are left out too.
+    margin = int(round(dn50 / before.spacing))
+    inner = ndimage.binary_erosion(structure, np.ones(2 * margin + 1, bool), border_value=0)
+    for r in np.nonzero(structure & ~inner)[0]:
+        reasons[r] = "within Dn50 of the side of the surveyed structure"
+    if not inner.any():
+        raise JaxStereoError("the surveyed structure is narrower than 2 Dn50: no cross-section away from its sides")
+    if stretch is not None:
+        y0, y1 = sorted(float(v) for v in stretch)
+        in_stretch = (before.y >= y0) & (before.y <= y1)
+        if not (in_stretch & covered).any():
+            raise JaxStereoError(f"the stretch y {y0:.3f} to {y1:.3f} m lies outside the surveys (y "
+                                 f"{before.y[0]:.3f} to {before.y[-1]:.3f} m)")
+        rows = np.nonzero(inner & in_stretch)[0]
+        if rows.size == 0:
+            raise JaxStereoError(f"no cross-section of the structure in the stretch y {y0:.3f} to {y1:.3f} m")
+        extent = (y0, y1)
+    else:
+        rows = np.nonzero(inner)[0]
+        extent = (float(before.y[rows[0]]), float(before.y[rows[-1]]))
+    skipped = sorted((float(before.y[r]), why) for r, why in reasons.items() if extent[0] <= before.y[r] <= extent[1])
+    return rows, skipped, extent
+
+
+def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float, origin: Vector2 | None,
+                   profile_spacing_m: float | None = None, threshold: float = 0.5,
+                   stretch: tuple[float, float] | None = None,
+                   active_zone_dn50: tuple[float, float] = ACTIVE_ZONE_DN50,
+                   foot_radius_m: float | None = None) -> StretchDamage:
+    """Damage of a tested stretch between two DEMs on one grid (x cross-shore, y along the breakwater).
+
+    **Arguments:** the DEMs; `dn50` (m); `cot` the design slope's cotangent; `swl` still water level (m);
+    `origin` (x, z) a point of the design slope line, e.g. its toe (see `fit_design_slope` to fit one);
+    `profile_spacing_m` between cross-sections (default Dn50); `threshold` of per-profile S for `S_mean`;
+    `stretch` (y0, y1) the tested stretch (characterisation width), metres (None: the whole surveyed
+    width); `active_zone_dn50` (below, above): erosion is counted from `below` Dn50 under the SWL to
+    `above` Dn50 over it, along the design slope; `foot_radius_m` the radius of the profiler's foot the
+    surfaces are seen with (default Dn50 / 4; 0: the raw DEMs), see `profiler_foot`.
+
+    The characteristic S is that of the profile averaged over the stretch (de Almeida, van Gent and
+    Hofland 2019); its damage level uses the thresholds of this slope. A cross-section that cannot be
+    computed is listed with its reason; none at all is an error.
+    """
+    if before.z.shape != after.z.shape:
+        raise JaxStereoError("the two surfaces are not on the same grid")
+    if origin is None:
+        raise JaxStereoError("give the design slope's origin (a point of the slope line, e.g. its toe), or fit "
+                             "one with fit_design_slope")
+    below, above = (float(v) for v in active_zone_dn50)
+    if below < 0 or above < 0 or below + above <= 0:
+        raise JaxStereoError(f"the active zone must extend below and/or above the SWL, got {active_zone_dn50} Dn50")
+    foot = dn50 / 4 if foot_radius_m is None else float(foot_radius_m)
+    before, after = profiler_foot(before, foot), profiler_foot(after, foot)
+    x_swl = slope_abscissa(swl, cot, origin)
+    zone = (x_swl - below * dn50, x_swl + above * dn50)
+    norm = float(np.hypot(cot, 1.0))
+    zone_z = (swl - below * dn50 / norm, swl + above * dn50 / norm)
+    rows, skipped, extent = _section_rows(before, after, cot, origin, zone, dn50, stretch)
+    both = np.isfinite(before.z) & np.isfinite(after.z)
+    mean_before = _column_mean(np.where(both[rows], before.z[rows], np.nan))
+    mean_after = _column_mean(np.where(both[rows], after.z[rows], np.nan))
+    averaged = profile_damage((before.x, mean_before), (before.x, mean_after), dn50, cot, origin, zone)
+    step = max(1, int(round((profile_spacing_m or dn50) / before.spacing)))
+    profiles = []
+    for r in rows[::step]:
+        try:
+            profiles.append((float(before.y[r]), profile_damage((before.x, before.z[r]), (after.x, after.z[r]), dn50,
+                                                                cot, origin, zone)))
+        except JaxStereoError as err:
+            skipped.append((float(before.y[r]), str(err)))
+    if not profiles:
+        raise JaxStereoError(f"no cross-section could be computed: {skipped[0][1]}")
+    s_values = np.array([p.S for _, p in profiles])
+    above_threshold = s_values[s_values > threshold]
+    outside = (before.y < extent[0]) | (before.y > extent[1])
+    volumes = dem_damage(*(DEM(d.x, d.y, np.where(outside[:, None], np.nan, d.z), d.spacing) for d in (before, after)),
+                         dn50)
+    return StretchDamage(
+        profiles=profiles, skipped=skipped, averaged=averaged,
+        S_mean=float(above_threshold.mean()) if above_threshold.size else 0.0, S_max=float(s_values.max()),
+        L_e_max=max(p.L_e for _, p in profiles), d_e_max=max(p.d_e for _, p in profiles), volumes=volumes,
+        level=damage_level(averaged.S, cot), cot=cot, origin=tuple(float(v) for v in origin), dn50=dn50, swl=swl,
+        threshold=threshold, stretch=extent, whole_width=stretch is None, active_zone=zone_z,
+    )
+
+
+def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir: PathLike) -> list[Path]:
+    """Write `damage.json`, `profiles.csv`, `profile.png` (averaged profiles, eroded area shaded) and
+    `difference.png` (DEM difference map) to `out_dir`, each atomically. Returns the paths."""
+    from .._app.plots import new_figure, save_figure
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    write_text_atomic(out / "damage.json", json.dumps(result.to_dict(), indent=2) + "\n")
+    paths.append(out / "damage.json")
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(["y_m", "A_e_m2", "L_e_m", "d_e_m", "S", "E2D", "damage_level", "note"])
+    rows = [(y, p, "") for y, p in result.profiles] + [(y, None, why) for y, why in result.skipped]
+    for y, p, why in sorted(rows, key=lambda r: r[0]):
+        if p is None:
+            writer.writerow([f"{y:.4f}", "", "", "", "", "", "not computed", why])
+        else:
+            writer.writerow([f"{y:.4f}", f"{p.A_e:.6g}", f"{p.L_e:.5g}", f"{p.d_e:.5g}", f"{p.S:.4g}", f"{p.E2D:.4g}",
+                             damage_level(p.S, result.cot), ""])
+    write_text_atomic(out / "profiles.csv", buf.getvalue())
+    paths.append(out / "profiles.csv")
+    in_stretch = (before.y >= result.stretch[0]) & (before.y <= result.stretch[1])
+    both = np.isfinite(before.z) & np.isfinite(after.z) & in_stretch[:, None]
+    zb = _column_mean(np.where(both, before.z, np.nan))
+    za = _column_mean(np.where(both, after.z, np.nan))
+    fig, ax = new_figure(figsize=(9, 4.2))
+    width = "whole surveyed width" if result.whole_width else "tested stretch"
+    ax.plot(before.x, zb, color="0.3", label=f"initial (averaged, {width})")
+    ax.plot(before.x, za, color="tab:red", label=f"final (averaged, {width})")
+    x0, z0 = result.origin
+    zone_x = [x0 + (z - z0) * result.cot for z in result.active_zone]
+    ax.axvspan(*zone_x, color="0.85", zorder=0,
+               label=f"active zone (z {result.active_zone[0]:.3f} to {result.active_zone[1]:.3f} m)")
+    ax.fill_between(before.x, za, zb, where=za < zb, color="tab:red", alpha=0.3, label="eroded")
+    ax.fill_between(before.x, za, zb, where=za > zb, color="tab:blue", alpha=0.3, label="accreted")
+    xs = np.array([before.x[0], before.x[-1]])
+    ax.plot(xs, z0 + (xs - x0) / result.cot, ls="--", color="0.6", lw=0.8, label=f"design slope 1:{result.cot:g}")
+    ax.axhline(result.swl, color="tab:blue", lw=0.8, ls=":", label="SWL")
+    lo, hi = np.nanmin(zb), np.nanmax(zb)
+    ax.set_ylim(lo - 0.05, hi + 0.05)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("z (m)")
+    e3d = "not measurable" if result.volumes.E3D is None else f"{result.volumes.E3D:.2f}"
+    ax.set_title(f"y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m ({width}): S = {result.averaged.S:.2f} "
+                 f"({result.level} on 1:{result.cot:g}), E2D = {result.averaged.E2D:.2f}, E3D = {e3d}", fontsize=9)
+    ax.legend(fontsize=8, loc="upper left")
+    ax.grid(alpha=0.3)
+    save_figure(fig, out / "profile.png")
+    paths.append(out / "profile.png")
+
+    fig, ax = new_figure(figsize=(8, 5))
+    diff = 1e3 * (after.z - before.z)
+    lim = np.nanpercentile(np.abs(diff), 99) if np.isfinite(diff).any() else 1.0
+    im = ax.imshow(diff, origin="lower", cmap="RdBu", vmin=-lim, vmax=lim,
+                   extent=(before.x[0], before.x[-1], before.y[0], before.y[-1]))
+    if result.volumes.E3D_xy is not None:
+        ax.plot(*result.volumes.E3D_xy, "k+", ms=12, label="E3D location")
+    for k, y in enumerate(result.stretch):
+        ax.axhline(y, color="k", lw=0.8, ls="--",
+                   label=None if k else ("whole surveyed width" if result.whole_width else "tested stretch"))
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"DEM difference (mm): eroded {1e6 * result.volumes.eroded_m3:.0f} cm^3, "
+                 f"accreted {1e6 * result.volumes.accreted_m3:.0f} cm^3")
+    ax.legend(fontsize=8)
+    fig.colorbar(im, ax=ax, label="after - before (mm)")
+    save_figure(fig, out / "difference.png")
+    paths.append(out / "difference.png")
+    return paths

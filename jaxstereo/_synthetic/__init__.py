@@ -1,0 +1,1 @@
+"""The synthetic flume: scenes, the JAX renderer, rigs, calibration photographs, the demo."""

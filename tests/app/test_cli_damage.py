@@ -1,0 +1,75 @@
+import json
+
+import numpy as np
+import pytest
+
+from jaxstereo._app.cli import main
+from jaxstereo._stereo.survey import Survey, save_survey
+from jaxstereo._surface.grid import load_dem
+
+
+def _survey(path, points):
+    n = points.shape[0]
+    save_survey(Survey(points, np.zeros((n, 3), np.uint8), np.zeros((n, 2)), np.zeros(n, bool), "{}", "exact", 0.158),
+                path)
+
+
+def _slope_cloud(rng, n=300000, hole=False, shift=0.0):
+    xy = rng.uniform([-0.3, -0.15], [0.5, 0.15], (n, 2))
+    z = np.clip((xy[:, 0] + 0.3) / 2.0, 0, 0.31)
+    if hole:  # a 3 cm deep pit around the still water level, 12 cm across
+        r = np.hypot(xy[:, 0] - 0.016, xy[:, 1])
+        z = z - 0.03 * np.clip(1 - r / 0.06, 0, 1)
+    return np.column_stack([xy[:, 0] + shift, xy[:, 1], z])
+
+
+@pytest.fixture(scope="module")
+def surveys(tmp_path_factory):
+    root = tmp_path_factory.mktemp("surveys")
+    rng = np.random.default_rng(1)
+    _survey(root / "before.npz", _slope_cloud(rng))
+    _survey(root / "after.npz", _slope_cloud(rng, hole=True))
+    _survey(root / "elsewhere.npz", _slope_cloud(rng, shift=5.0))
+    return root
+
+
+def test_grid_and_damage_commands(surveys, tmp_path, capsys):
+    assert main(["grid", str(surveys / "before.npz"), "--spacing", "0.005", "-o", str(tmp_path / "before_dem.npz")]) == 0
+    dem = load_dem(tmp_path / "before_dem.npz")
+    X, _ = np.meshgrid(dem.x, dem.y)
+    assert np.nanmedian(np.abs(dem.z - np.clip((X + 0.3) / 2, 0, 0.31))) < 1e-3
+    code = main(["damage", str(tmp_path / "before_dem.npz"), str(surveys / "after.npz"), "--dn50", "0.036",
+                 "--slope", "1:2", "--swl", "0.158", "--slope-origin", "-0.3", "0.0", "-o", str(tmp_path / "report")])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "averaged profile" in out and "E3D" in out
+    report = json.loads((tmp_path / "report" / "damage.json").read_text())
+    # The pit's volume is pi r^2 h / 3 (a cone, 12 cm across, 3 cm deep) measured vertically. Gridding
+    # noise (about 0.2 mm per cell here) adds to both the eroded and the accreted sums; the net is the pit.
+    cone = np.pi * 0.06**2 * 0.03 / 3
+    assert abs(report["eroded_volume_m3"] - report["accreted_volume_m3"] - cone) < 0.05 * cone
+    assert report["accreted_volume_m3"] < 0.3 * cone
+    # E3D: the cone's depth averaged over the Dn50 circle at its axis, 0.03 (1 - (2/3) 0.018 / 0.06), over Dn50.
+    assert abs(report["E3D"] - 0.03 * (1 - 2 / 3 * 0.018 / 0.06) / 0.036) < 0.03 * report["E3D"]
+    assert report["S_max"] > report["averaged_profile"]["S"] > 0
+    for name in ("profiles.csv", "profile.png", "difference.png"):
+        assert (tmp_path / "report" / name).stat().st_size > 0
+
+
+def _error(capsys, code, text):
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and text in err, err
+
+
+def test_damage_bad_input(surveys, tmp_path, capsys):
+    base = [str(surveys / "before.npz"), str(surveys / "after.npz"), "--swl", "0.158", "-o", str(tmp_path / "r")]
+    _error(capsys, main(["damage", *base, "--dn50", "0", "--slope", "2"]), "--dn50 must be positive")
+    _error(capsys, main(["damage", *base, "--dn50", "-0.03", "--slope", "2"]), "--dn50 must be positive")
+    _error(capsys, main(["damage", *base, "--dn50", "0.036", "--slope", "steep"]), "slope 'steep' does not parse")
+    _error(capsys, main(["damage", str(surveys / "before.npz"), str(surveys / "elsewhere.npz"), "--swl", "0.158",
+                         "--dn50", "0.036", "--slope", "2", "-o", str(tmp_path / "r")]), "do not overlap")
+    _error(capsys, main(["damage", str(surveys / "missing.npz"), str(surveys / "after.npz"), "--swl", "0.158",
+                         "--dn50", "0.036", "--slope", "2", "-o", str(tmp_path / "r")]), "does not exist")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    _error(capsys, main(["grid", str(tmp_path / "junk.npz"), "-o", str(tmp_path / "d.npz")]), "cannot be read")
+    assert not (tmp_path / "r").exists() and not (tmp_path / "d.npz").exists()

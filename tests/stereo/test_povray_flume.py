@@ -1,0 +1,109 @@
+"""Calibration and surveys on the POV-Ray development flume: images from an independent ray tracer, exact truth.
+
+The data set lives beside the checkout (`../shared/data/povray-flume-dev`, as in CI); its README describes it.
+Everything runs at the full 1728x1152 resolution through the command line, as a user would, and every
+result is mapped into the truth frame through the calibrated left camera (as `flume-score` does), so that
+the calibration's own error is part of every figure. The bounds are the figures this project reaches
+today (see the README's accuracy table), not the issue's targets where those are not met yet.
+"""
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from jaxstereo import load_survey
+from jaxstereo._app.cli import main
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "povray-flume-dev"
+pytestmark = pytest.mark.skipif(not DATA.is_dir() and os.environ.get("CI") != "true",
+                                reason=f"the development flume is not at {DATA}")
+
+
+@pytest.fixture(scope="module")
+def flume(tmp_path_factory):
+    work = tmp_path_factory.mktemp("povray")
+    truth = json.loads((DATA / "truth.json").read_text())
+    assert main(["calibrate", "--left", str(DATA / "calib" / "*_L.jpg"), "--right", str(DATA / "calib" / "*_R.jpg"),
+                 "--board", "chessboard:9x6:%g" % truth["square"], "--origin-left", str(DATA / "origin_L.jpg"),
+                 "--origin-right", str(DATA / "origin_R.jpg"), "-o", str(work / "rig.json")]) == 0
+    return work, truth, json.loads((work / "rig.json").read_text())
+
+
+def _centre(cam):
+    return -np.asarray(cam["R"], float).T @ np.asarray(cam["t"], float)
+
+
+def _to_truth(rig, truth):
+    R_c, t_c = np.asarray(rig["left"]["R"], float), np.asarray(rig["left"]["t"], float)
+    true = truth["rigs"]["main"]["L"]
+    R_t, t_t = np.asarray(true["R"], float), np.asarray(true["t"], float)
+    return lambda P: (R_t.T @ (R_c @ P.T + t_c[:, None] - t_t[:, None])).T
+
+
+def _survey(flume, scene):
+    work, truth, rig = flume
+    out = work / f"{scene}.npz"
+    if not out.exists():
+        level = truth["scenes"][scene]["water_level"]
+        assert main(["reconstruct", str(DATA / f"{scene}_L.jpg"), str(DATA / f"{scene}_R.jpg"), "--rig",
+                     str(work / "rig.json"), "-o", str(out)] + (["--water-level", str(level)] if level else [])) == 0
+    return _to_truth(rig, truth)(load_survey(out).points)
+
+
+def test_calibration_focal_baseline_and_height(flume):
+    _, truth, rig = flume
+    f_true = truth["K"][0][0]
+    assert abs(rig["left"]["fx"] - f_true) / f_true <= 5e-4  # 0.046 % measured
+    true_l, true_r = (_centre(truth["rigs"]["main"][s]) for s in "LR")
+    base = np.linalg.norm(_centre(rig["left"]) - _centre(rig["right"]))
+    assert abs(base - np.linalg.norm(true_l - true_r)) <= 2e-4
+    # The height follows the focal length (0.046 % of 2.3 m): -0.98 mm measured; the issue's 0.5 mm is not met.
+    assert abs(_centre(rig["left"])[2] - true_l[2]) <= 1.2e-3
+
+
+def test_sloping_board_one_clean_point_per_pixel(flume):
+    _, truth, _ = flume
+    P = _survey(flume, "board_wet")
+    p = truth["scenes"]["board_wet"]["plane"]
+    a = np.arctan2(p["drop"], p["length"])
+    x = P[:, 0] - p["x0"]
+    e = (P[:, 2] - x * np.tan(a)) * np.cos(a) * 1e3
+    on = (x > 0.02) & (x < p["length"] - 0.02) & (P[:, 1] > 0.02) & (P[:, 1] < p["width"] - 0.02)
+    e, z = e[on], P[on, 2]
+    assert np.mean(np.abs(e) > 20) <= 0.005  # gross outliers: 1.8 % before one match per pixel, 0.00 % now
+    medians = [np.median(e[(z >= lo) & (z < lo + 0.05)]) for lo in np.arange(0.0, 0.30, 0.05)]
+    assert max(abs(m) for m in medians) <= 1.2, medians  # 1.02 measured, 0.98 of it the calibrated height
+    sub = (z < truth["scenes"]["board_wet"]["water_level"]) & (np.abs(e) < 20)
+    assert np.sqrt(np.mean(e[sub] ** 2)) <= 2.4  # 2.22 measured (SGBM's own sub-pixel values 3.09; plain OpenCV 3.49)
+
+
+def _c2m(P, surface, x, y, box):
+    x0, x1, y0, y1 = box
+    jx, iy = (x >= x0 - 0.02) & (x < x1 + 0.02), (y >= y0 - 0.02) & (y < y1 + 0.02)
+    X, Y = np.meshgrid(x[jx], y[iy])
+    S = np.stack([X.ravel(), Y.ravel(), surface[np.ix_(iy, jx)].ravel()], 1)
+    m = (P[:, 0] >= x0) & (P[:, 0] < x1) & (P[:, 1] >= y0) & (P[:, 1] < y1)
+    Q = P[m][:: max(1, m.sum() // 100000)]
+    d, idx = cKDTree(S).query(Q)
+    return d * 1e3, S[idx, 2]
+
+
+def test_breakwater_wet_survey_has_no_refracted_mismatches(flume):
+    _, truth, _ = flume
+    wet, dry = _survey(flume, "bw_I_wet"), _survey(flume, "bw_I_dry")
+    assert np.mean(wet[:, 2] < -0.02) <= 5e-4  # 0.84 % before (mismatches refracted below the floor)
+    gt = np.load(DATA / "breakwater_gt.npz")
+    bw = truth["breakwater"]
+    box = (bw["toe"] + 0.05, bw["toe"] + bw["slope"] * bw["height"] + 0.03, 0.05, bw["width"] - 0.05)
+    level = truth["scenes"]["bw_I_wet"]["water_level"]
+    d_wet, z_wet = _c2m(wet, gt["I"].astype(float), gt["x"], gt["y"], box)
+    d_dry, z_dry = _c2m(dry, gt["I"].astype(float), gt["x"], gt["y"], box)
+    emerged_wet = np.mean(d_wet[z_wet >= level + 0.01])
+    emerged_dry = np.mean(d_dry[z_dry >= level + 0.01])
+    assert emerged_wet - emerged_dry <= 0.2  # the emerged rock matched once, as in the dry survey
+    submerged = d_wet[z_wet < level - 0.01]
+    assert np.mean(submerged) <= 3.8  # 3.54 measured (plain OpenCV 3.56; the issue's 2.5 is not met)

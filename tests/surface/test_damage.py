@@ -1,0 +1,231 @@
+import numpy as np
+import pytest
+
+import jaxstereo as js
+from jaxstereo._surface.damage import (
+    damage_level,
+    damage_thresholds,
+    dem_damage,
+    parse_slope,
+    profile_damage,
+    slope_abscissa,
+    to_slope_frame,
+)
+from jaxstereo._surface.grid import DEM, grid_median
+from jaxstereo._surface.profiles import moving_average, profile_from_dem
+
+COT = 2.0
+DN50 = 0.036
+
+
+def _slope_profile(Xp, Zp, cot=COT, origin=(0.1, 0.05)):
+    """Map slope-frame points (X' along, Z' normal) back to world (x, z)."""
+    norm = np.hypot(cot, 1.0)
+    t = np.array([cot, 1.0]) / norm
+    n = np.array([-1.0, cot]) / norm
+    x = origin[0] + Xp * t[0] + Zp * n[0]
+    z = origin[1] + Xp * t[1] + Zp * n[1]
+    return x, z
+
+
+def _notch(X, centre, top_len, bottom_len, depth):
+    """Z' of a trapezoidal notch (triangle when bottom_len = 0) cut into the slope line Z' = 0."""
+    a = np.abs(X - centre)
+    half_top, half_bot = top_len / 2, bottom_len / 2
+    ramp = np.clip((half_top - a) / (half_top - half_bot), 0.0, 1.0) if half_top > half_bot else (a <= half_top) * 1.0
+    return -depth * ramp
+
+
+@pytest.mark.parametrize("bottom", [0.0, 0.04])
+def test_analytic_notch(bottom):
+    X = np.linspace(-0.5, 0.5, 1001)  # initial profile sampled on its own abscissae
+    Xf = np.linspace(-0.5, 0.5, 777) + 1e-4  # final profile on others: merging is exercised
+    top, depth, centre = 0.12, 0.05, 0.031
+    # Make sure the notch's corners are vertices of the final polyline.
+    Xf = np.unique(np.concatenate([Xf, [centre - top / 2, centre + top / 2, centre - bottom / 2, centre + bottom / 2]]))
+    initial = _slope_profile(X, np.zeros_like(X))
+    final = _slope_profile(Xf, _notch(Xf, centre, top, bottom, depth))
+    dmg = profile_damage(initial, final, DN50, COT, origin=(0.1, 0.05))
+    area = (top + bottom) / 2 * depth
+    assert abs(dmg.A_e - area) < 1e-9
+    assert abs(dmg.L_e - top) < 1e-9
+    assert abs(dmg.d_e - depth) < 1e-9
+    assert abs(dmg.S - area / DN50**2) < 1e-6
+    assert abs(dmg.E2D - depth / DN50) < 1e-6
+    assert dmg.accretion == []
+
+
+def test_several_holes_are_all_found_and_the_largest_chosen():
+    X = np.unique(np.concatenate([np.linspace(-0.6, 0.6, 1201), [-0.35, -0.3, -0.25, 0.0, 0.05, 0.1, 0.3, 0.32, 0.34]]))
+    Z = (_notch(X, -0.3, 0.1, 0.0, 0.02) + _notch(X, 0.05, 0.1, 0.0, 0.06) + _notch(X, 0.32, 0.04, 0.0, 0.01))
+    dmg = profile_damage(_slope_profile(X, 0 * X), _slope_profile(X, Z), DN50, COT, origin=(0.1, 0.05))
+    assert len(dmg.erosion) == 3
+    areas = sorted(z.area for z in dmg.erosion)
+    np.testing.assert_allclose(areas, [0.04 * 0.01 / 2, 0.1 * 0.02 / 2, 0.1 * 0.06 / 2], atol=1e-12)
+    assert abs(dmg.A_e - 0.003) < 1e-12 and abs(dmg.d_e - 0.06) < 1e-12 and abs(dmg.L_e - 0.1) < 1e-12
+
+
+def test_pure_accretion_gives_zero_damage():
+    X = np.unique(np.concatenate([np.linspace(-0.5, 0.5, 501), [-0.1, -0.025, 0.025, 0.1]]))
+    Z = -_notch(X, 0.0, 0.2, 0.05, 0.03)  # a mound
+    dmg = profile_damage(_slope_profile(X, 0 * X), _slope_profile(X, Z), DN50, COT, origin=(0.1, 0.05))
+    assert dmg.S == 0 and dmg.A_e == 0 and dmg.erosion == []
+    assert len(dmg.accretion) == 1 and abs(dmg.accretion[0].area - 0.125 * 0.03) < 1e-9
+
+
+def test_slope_frame_rotation_keeps_lengths():
+    x = np.array([0.0, 2.0, 3.0])
+    z = np.array([0.0, 1.0, 0.5])
+    X, Z = to_slope_frame(x, z, 2.0)
+    np.testing.assert_allclose(np.hypot(np.diff(X), np.diff(Z)), np.hypot(np.diff(x), np.diff(z)), atol=1e-15)
+    np.testing.assert_allclose(Z[:2], 0.0, atol=1e-15)  # points on the slope line
+
+
+def test_dem_volumes_and_e3d_of_a_cylindrical_hole():
+    spacing = 0.002
+    x = np.arange(-0.3, 0.3 + 1e-9, spacing)
+    y = np.arange(-0.2, 0.2 + 1e-9, spacing)
+    X, Y = np.meshgrid(x, y)
+    before = DEM(x, y, 0.5 * X, spacing)
+    hole = (X - 0.05) ** 2 + (Y + 0.02) ** 2 <= 0.04**2
+    mound = (X + 0.2) ** 2 + Y**2 <= 0.02**2
+    after_z = before.z - 0.03 * hole + 0.01 * mound
+    dmg = dem_damage(before, DEM(x, y, after_z, spacing), DN50)
+    assert abs(dmg.eroded_m3 - 0.03 * hole.sum() * spacing**2) < 1e-12
+    assert abs(dmg.accreted_m3 - 0.01 * mound.sum() * spacing**2) < 1e-12
+    assert abs(dmg.E3D - 0.03 / DN50) < 1e-9  # the Dn50 circle fits inside the 80 mm hole
+    # Anywhere the Dn50 circle fits in the hole (centre within 40 - 18 mm of its axis) is a maximum.
+    assert np.hypot(dmg.E3D_xy[0] - 0.05, dmg.E3D_xy[1] + 0.02) <= 0.022 + spacing
+
+
+def test_gridding_median_and_profiles():
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(0, 1, 200000), rng.uniform(0, 0.5, 200000), np.zeros(200000)])
+    pts[:, 2] = 0.3 * pts[:, 0] + 0.1
+    dem = grid_median(pts, 0.01)
+    X, _ = np.meshgrid(dem.x, dem.y)
+    interior = np.isfinite(dem.z)
+    assert interior.mean() > 0.9
+    assert np.nanmax(np.abs(dem.z - (0.3 * X + 0.1))) < 0.3 * 0.006  # within a cell of the plane
+    s, z = profile_from_dem(dem, (0.1, 0.25), (0.9, 0.25))
+    np.testing.assert_allclose(z, 0.3 * (0.1 + s) + 0.1, atol=2e-3)
+    np.testing.assert_allclose(moving_average(np.arange(10.0), 5)[2:-2], np.arange(10.0)[2:-2])
+
+
+def test_bad_damage_input():
+    for text in ["steep", "-2", "1:0", "0"]:
+        with pytest.raises(js.JaxStereoError, match="slope"):
+            parse_slope(text)
+    assert parse_slope("1:2") == 2.0 and parse_slope("2") == 2.0 and parse_slope("2:3") == 1.5
+    X = np.linspace(0, 1, 10)
+    with pytest.raises(js.JaxStereoError, match="Dn50 must be positive"):
+        profile_damage((X, X), (X, X), 0.0, 2.0)
+    with pytest.raises(js.JaxStereoError, match="do not overlap"):
+        profile_damage((X, 0 * X), (X + 5, 0 * X), 0.036, 2.0)
+    a = DEM(np.arange(3.0), np.arange(2.0), np.zeros((2, 3)), 1.0)
+    b = DEM(np.arange(4.0), np.arange(2.0), np.zeros((2, 4)), 1.0)
+    with pytest.raises(js.JaxStereoError, match="same grid"):
+        dem_damage(a, b, 0.036)
+    nan = DEM(a.x, a.y, np.full((2, 3), np.nan), 1.0)
+    with pytest.raises(js.JaxStereoError, match="do not overlap"):
+        dem_damage(a, nan, 0.036)
+
+
+def test_damage_levels():
+    assert damage_level(1.0, 2.0) == "no damage"
+    assert damage_level(2.5, 2.0) == "start of damage"
+    assert damage_level(5.0, 2.0) == "intermediate damage"
+    assert damage_level(9.0, 2.0) == "failure"
+    assert damage_level(10.0, 3.0) == "advanced damage"
+    # A 1:4 slope has its own thresholds (start 3, intermediate 8-12, failure 17), not 1:3's.
+    assert damage_level(7.0, 3.0) == "intermediate damage" and damage_level(7.0, 4.0) == "start of damage"
+    assert damage_level(16.0, 4.0) == "advanced damage" and damage_level(17.0, 6.0) == "failure"
+    start, (lo, hi), failure = damage_thresholds(2.5)  # between 1:2 and 1:3: linear in the cotangent
+    assert (start, lo, hi, failure) == (2.0, 5.0, 7.5, 10.0)
+    with pytest.raises(js.JaxStereoError, match="outside"):
+        damage_level(3.0, 8.0)
+
+
+def test_erosion_outside_the_active_zone_is_not_counted():
+    X = np.unique(np.concatenate([np.linspace(-0.6, 0.6, 1201), [-0.1, -0.05, 0.0, 0.35, 0.4, 0.45]]))
+    # A small hole at the still water level (X' = 0 here) and a larger one 0.4 m up the slope (the crest).
+    Z = _notch(X, -0.05, 0.1, 0.0, 0.02) + _notch(X, 0.4, 0.1, 0.0, 0.05)
+    origin = (0.1, 0.05)
+    swl = origin[1]  # the slope line meets the SWL at the origin
+    everywhere = profile_damage(_slope_profile(X, 0 * X), _slope_profile(X, Z), DN50, COT, origin)
+    assert abs(everywhere.A_e - 0.1 * 0.05 / 2) < 1e-12  # the crest's hole, counted without a zone
+    zone = (slope_abscissa(swl, COT, origin) - 6 * DN50, slope_abscissa(swl, COT, origin) + 4 * DN50)
+    active = profile_damage(_slope_profile(X, 0 * X), _slope_profile(X, Z), DN50, COT, origin, zone)
+    assert abs(active.A_e - 0.1 * 0.02 / 2) < 1e-12 and len(active.erosion) == 1
+    assert active.swept == pytest.approx(zone)
+
+
+def _dems(rows_with_hole, depth=0.03, cot=COT, spacing=0.004):
+    """DEMs of a 1:cot slope through (0, 0); the after one with a square-sided hole 8 cm long, centred on z = 0,
+    on the given rows (a boolean per y)."""
+    x = np.arange(-0.4, 0.6 + 1e-9, spacing)
+    y = np.arange(-0.3, 0.3 + 1e-9, spacing)
+    X, Y = np.meshgrid(x, y)
+    z = X / cot
+    hole = (np.abs(X) <= 0.04 * cot / np.hypot(cot, 1)) & rows_with_hole(Y)
+    return DEM(x, y, z, spacing), DEM(x, y, z - depth * hole, spacing)
+
+
+def test_stretch_is_the_average_of_its_profiles():
+    from jaxstereo._surface.damage_report import stretch_damage
+
+    # A hole on |y| < 0.1, and a deeper one for y > 0.2, outside the tested stretch.
+    before, after = _dems(lambda Y: (np.abs(Y) < 0.1) | (Y > 0.2))
+    result = stretch_damage(before, after, DN50, COT, 0.0, (0.0, 0.0), profile_spacing_m=0.004,
+                            stretch=(-0.15, 0.15), foot_radius_m=0.0)
+    rows = (before.y >= -0.15) & (before.y <= 0.15)
+    by_hand = profile_damage((before.x, before.z[rows].mean(axis=0)), (after.x, after.z[rows].mean(axis=0)),
+                             DN50, COT, (0.0, 0.0), result.averaged.swept)
+    assert result.averaged.A_e == pytest.approx(by_hand.A_e, rel=1e-12) and by_hand.A_e > 0
+    assert result.averaged.d_e == pytest.approx(by_hand.d_e, rel=1e-12)
+    inside = [p for y, p in result.profiles]
+    assert all(-0.15 <= y <= 0.15 for y, _ in result.profiles) and not result.whole_width
+    # Profiles through the hole see its full depth; the stretch's characteristic S is their width average.
+    assert max(p.d_e for p in inside) == pytest.approx(0.03 * COT / np.hypot(COT, 1), rel=1e-6)
+    assert result.level == damage_level(result.averaged.S, COT)
+    whole = stretch_damage(before, after, DN50, COT, 0.0, (0.0, 0.0), foot_radius_m=0.0)
+    assert whole.whole_width and any(y > 0.2 and p.A_e > 0 for y, p in whole.profiles)
+    assert whole.stretch[0] > before.y[0] and whole.stretch[1] < before.y[-1]  # Dn50 off the model's sides
+
+
+def test_no_silent_zeros():
+    from jaxstereo._surface.damage_report import stretch_damage
+
+    before, after = _dems(lambda Y: np.abs(Y) < 0.1)
+    nan_after = DEM(after.x, after.y, np.full_like(after.z, np.nan), after.spacing)
+    with pytest.raises(js.JaxStereoError, match="do not overlap"):
+        stretch_damage(before, nan_after, DN50, COT, 0.0, (0.0, 0.0))
+    with pytest.raises(js.JaxStereoError, match="outside the surveys"):
+        stretch_damage(before, after, DN50, COT, 0.0, (0.0, 0.0), stretch=(2.0, 3.0))
+    # A narrow strip of data: no Dn50 circle is covered, so E3D is not measurable (None), not 0.
+    strip = np.full_like(after.z, np.nan)
+    strip[:, :3] = after.z[:, :3]
+    assert dem_damage(before, DEM(after.x, after.y, strip, after.spacing), DN50).E3D is None
+    # Sections off the design slope are named with their reason, not silently dropped.
+    off = before.z.copy()
+    off[before.y > 0.25] = -0.2
+    result = stretch_damage(DEM(before.x, before.y, off, before.spacing), after, DN50, COT, 0.0, (0.0, 0.0),
+                            stretch=(-0.3, 0.3))
+    assert any("off the design slope" in why for _, why in result.skipped)
+    assert all(y <= 0.25 for y, _ in result.profiles)
+
+
+def test_profiler_foot_bridges_crevices_and_keeps_holes():
+    from jaxstereo._surface.damage_report import profiler_foot
+
+    spacing = 0.002
+    x = np.arange(0, 0.2, spacing)
+    X, Y = np.meshgrid(x, x)
+    z = np.zeros_like(X)
+    z[(np.abs(X - 0.05) < 0.003)] = -0.02  # a crevice 6 mm wide: the 9 mm ball does not reach its bottom
+    z[(np.abs(X - 0.15) < 0.03) & (np.abs(Y - 0.1) < 0.03)] = -0.02  # a hole 6 cm across: it does
+    z[50, 20] = 0.05  # a single-cell spike
+    seen = profiler_foot(DEM(x, x, z, spacing), 0.009).z
+    assert seen[:, 25].min() > -0.005  # bridged (the ball sags at most r - sqrt(r^2 - 3^2) mm)
+    assert seen[50, 75] == pytest.approx(-0.02)  # the hole's middle
+    assert abs(seen[50, 20]) < 1e-12  # the spike removed

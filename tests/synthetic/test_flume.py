@@ -1,0 +1,107 @@
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxstereo as js
+from jaxstereo._synthetic.flume_rig import RigSpec, flume_rig
+from jaxstereo._synthetic.render import RenderOptions, render_view
+from jaxstereo._synthetic.scenes import (
+    Breakwater,
+    Damage,
+    Extent,
+    FlatFloor,
+    SlopingBoard,
+    build_scene,
+    scene_from_json,
+    scene_to_json,
+)
+
+SMALL = Extent(-0.6, 0.6, -0.4, 0.4, 2e-3)
+
+
+def _pixel_centres(view):
+    h, w = view.hit.shape
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    return np.stack([u, v], axis=-1)
+
+
+@pytest.mark.parametrize("tilt_deg, tilt_x, tilt_y", [(0.0, 0.0, 0.0), (18.0, 0.03, -0.04)])
+def test_ground_truth_points_project_onto_their_pixel_centres(tilt_deg, tilt_x, tilt_y):
+    scene = build_scene(Breakwater(extent=Extent(-0.6, 0.6, -0.35, 1.0, 2e-3), seed=4))
+    left, _ = flume_rig(RigSpec(image_size=(288, 192), water_level_m=0.158, tilt_deg=tilt_deg,
+                                dist=(-0.05, 0.02, 0.0, 0.0, 0.0)))
+    water = js.Interface.from_tilt(0.158, tilt_x, tilt_y)
+    view = render_view(left, scene.heightfield, water, RenderOptions(fine_step_m=2e-3))
+    m = view.hit
+    assert m.sum() > 20000
+    assert 0.2 < view.submerged[m].mean() < 0.8  # both emerged and submerged pixels are checked
+    pixels, valid = js.project_refracted(left, water, jnp.asarray(view.points[m]))
+    err = np.abs(np.asarray(pixels) - _pixel_centres(view)[m]).max(axis=-1)
+    assert bool(np.all(valid))
+    assert err.max() < 0.02
+    # And the points lie on the scene's surface.
+    z, _ = scene.heightfield.height_at(jnp.asarray(view.points[m][:, :2]))
+    assert np.abs(np.asarray(z) - view.points[m][:, 2]).max() < 1e-4
+
+
+def test_sloping_board_heights_are_exact():
+    spec = SlopingBoard(extent=SMALL)
+    scene = build_scene(spec)
+    left, _ = flume_rig(RigSpec(image_size=(216, 144), water_level_m=0.18))
+    view = render_view(left, scene.heightfield, js.Interface(0.18), RenderOptions(fine_step_m=2e-3))
+    p = view.points[view.hit]
+    assert np.abs(p[:, 2] - spec.height(p[:, 0])).max() < 1e-7
+    # Submerged exactly where the board is under 0.18 m.
+    np.testing.assert_array_equal(view.submerged[view.hit], p[:, 2] < 0.18)
+
+
+def test_scenes_are_deterministic_and_serialisable():
+    spec = Breakwater(extent=SMALL, seed=11, damage=Damage(half_length_dn50=2.5, deep_fraction=0.5))
+    again = scene_from_json(scene_to_json(spec))
+    assert again == spec
+    a, b = build_scene(spec), build_scene(again)
+    np.testing.assert_array_equal(np.asarray(a.heightfield.z), np.asarray(b.heightfield.z))
+    np.testing.assert_array_equal(np.asarray(a.heightfield.albedo), np.asarray(b.heightfield.albedo))
+    other = build_scene(dataclasses.replace(spec, seed=12))
+    assert not np.array_equal(np.asarray(other.heightfield.z), np.asarray(a.heightfield.z))
+    for s in (FlatFloor(extent=SMALL), SlopingBoard(extent=SMALL)):
+        assert scene_from_json(scene_to_json(s)) == s
+
+
+def test_damage_removes_units_around_swl_and_lowers_the_surface():
+    intact = build_scene(Breakwater(extent=SMALL, seed=5))
+    stages = [build_scene(Breakwater(extent=SMALL, seed=5, damage=Damage(half_length_dn50=k, deep_fraction=f)))
+              for k, f in ((1.5, 0.0), (2.5, 0.3), (3.5, 0.6))]
+    removed = [int(s.rocks["removed"].sum() + s.rocks["deposited"].sum()) for s in stages]
+    assert removed[0] < removed[1] < removed[2]
+    z0 = np.asarray(intact.heightfield.z)
+    x = intact.heightfield.x
+    swl_zone = np.abs(x - (-0.45 + 2.0 * 0.158)) < 0.05
+    losses = [float(np.mean(np.clip(z0 - np.asarray(s.heightfield.z), 0, None)[:, swl_zone])) for s in stages]
+    assert 0 < losses[0] < losses[1] < losses[2]
+
+
+def test_bad_scene_input():
+    with pytest.raises(js.JaxStereoError, match="dn50_m must be positive"):
+        Breakwater(dn50_m=0.0)
+    with pytest.raises(js.JaxStereoError, match="slope"):
+        Breakwater(slope=0.5)
+    with pytest.raises(js.JaxStereoError, match="supersample"):
+        RenderOptions(supersample=2)
+    with pytest.raises(js.JaxStereoError, match="unknown kind"):
+        scene_from_json('{"kind": "volcano", "extent": {}}')
+
+
+def test_scene_entirely_under_water_is_refracted_at_the_surface():
+    # Regression: a flat floor 0.5 m under the water, nothing above it.
+    scene = build_scene(FlatFloor(z_m=-0.5, extent=Extent(-1.0, 1.0, -0.8, 0.8, 4e-3)))
+    left, _ = flume_rig(RigSpec(image_size=(216, 144), water_level_m=0.0, camera_height_m=1.3))
+    water = js.Interface(0.0)
+    view = render_view(left, scene.heightfield, water, RenderOptions(fine_step_m=4e-3))
+    m = view.hit
+    assert m.mean() > 0.9 and view.submerged[m].all()
+    np.testing.assert_allclose(view.points[m][:, 2], -0.5, atol=1e-7)
+    pixels, _ = js.project_refracted(left, water, jnp.asarray(view.points[m]))
+    assert np.abs(np.asarray(pixels) - _pixel_centres(view)[m]).max() < 0.02
