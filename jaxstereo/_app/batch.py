@@ -138,7 +138,7 @@ def _check_water_levels(manifest: Manifest, rig) -> None:
             raise JaxStereoError(f"manifest {str(manifest.path)!r}, pair {pair.key}: {err}") from None
 
 
-def run_batch(manifest_path: PathLike, output: PathLike | None = None, workers: int = 1, scheduler: str | None = None,
+def run_batch(manifest_path: PathLike | Manifest, output: PathLike | None = None, workers: int = 1, scheduler: str | None = None,
               log: Callable[[str], object] | None = print, progress_stream: TextIO | None = None) -> BatchResult:
     """Run a campaign manifest (a TOML path, see `load_manifest`, or a `Manifest`); returns a `BatchResult`.
 
@@ -179,24 +179,7 @@ def run_batch(manifest_path: PathLike, output: PathLike | None = None, workers: 
     log(f"batch: {len(jobs)} pairs in {len(manifest.tests())} test(s); {skipped} already done, {len(todo)} to run "
         f"on {where}; output {out}")
     record(f"start: {len(todo)} to run, {skipped} already done ({where})")
-    progress = Progress(len(todo), "pairs", progress_stream)
-    failed = 0
-    if todo:
-        runner = _Dask(scheduler) if scheduler else (_Processes(workers) if workers > 1 else _Inline())
-        try:
-            phases = [[j for j in todo if j.pair.reference], [j for j in todo if not j.pair.reference]]
-            for phase in phases:
-                for job, row in runner.run(phase):
-                    rows[job.pair.key] = row
-                    if row["status"] == "failed":
-                        failed += 1
-                        record(f"FAILED {job.pair.key} ({row['seconds']:.1f} s): {row['error']}")
-                    else:
-                        record(f"ok {job.pair.key}: {row['points']} points, {row['seconds']:.1f} s"
-                               + (f", S {row['S']:.2f}" if "S" in row else ""))
-                    progress.advance(f"{job.pair.key} {row['status']}")
-        finally:
-            runner.close()
+    failed = _run_jobs(todo, rows, workers, scheduler, record, Progress(len(todo), "pairs", progress_stream))
     ordered = [rows[j.pair.key] for j in jobs if j.pair.key in rows]
     summary_csv = out / "summary.csv"
     write_text_atomic(summary_csv, _rows_to_csv(ordered))
@@ -213,6 +196,30 @@ def run_batch(manifest_path: PathLike, output: PathLike | None = None, workers: 
             log(f"  FAILED {row['test']}/{row['stage']}: {row['error']}")
     log(f"summary: {summary_csv}" + "".join(f"\nfigure: {f}" for f in figures) + f"\nlog: {log_path}")
     return BatchResult(ordered, len(todo), skipped, failed, seconds, out, summary_csv, figures)
+
+
+def _run_jobs(todo: list, rows: dict, workers: int, scheduler: str | None, record, progress: Progress) -> int:
+    """Run the jobs (every test's reference stage first), storing each row in `rows` by pair key, logging
+    each with `record` and advancing `progress`; returns how many failed."""
+    if not todo:
+        return 0
+    failed = 0
+    runner = _Dask(scheduler) if scheduler else (_Processes(workers) if workers > 1 else _Inline())
+    try:
+        phases = [[j for j in todo if j.pair.reference], [j for j in todo if not j.pair.reference]]
+        for phase in phases:
+            for job, row in runner.run(phase):
+                rows[job.pair.key] = row
+                if row["status"] == "failed":
+                    failed += 1
+                    record(f"FAILED {job.pair.key} ({row['seconds']:.1f} s): {row['error']}")
+                else:
+                    record(f"ok {job.pair.key}: {row['points']} points, {row['seconds']:.1f} s"
+                           + (f", S {row['S']:.2f}" if "S" in row else ""))
+                progress.advance(f"{job.pair.key} {row['status']}")
+    finally:
+        runner.close()
+    return failed
 
 
 def _rows_to_csv(rows: list[dict]) -> str:

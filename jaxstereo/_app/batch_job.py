@@ -123,14 +123,6 @@ def run_pair(job: PairJob) -> dict:
 def _process_pair(job: PairJob) -> dict:
     from .._stereo.reconstruct import ReconstructOptions, reconstruct
     from .._stereo.survey import plot_survey_preview, save_survey
-    from .._surface.damage import parse_slope
-    from .._surface.damage_report import (
-        ACTIVE_ZONE_DN50,
-        _column_mean,
-        fit_design_slope,
-        stretch_damage,
-        write_damage_report,
-    )
     from .._surface.grid import fill_holes, grid_median, load_dem, save_dem
     from .images import check_pair, read_image
 
@@ -175,27 +167,35 @@ def _process_pair(job: PairJob) -> dict:
         elif not np.any(np.isfinite(reference_dem.z) & np.isfinite(dem.z)):
             raise JaxStereoError(f"survey of {pair.key} does not overlap its reference stage's DEM")
         else:
-            d = job.damage
-            cot = parse_slope(d.slope)
-            origin = d.slope_origin
-            if d.fit_slope:
-                origin, _ = fit_design_slope(reference_dem.x, _column_mean(reference_dem.z), cot, d.swl, d.dn50)
-            result = stretch_damage(reference_dem, dem, d.dn50, cot, d.swl, origin, d.profile_spacing,
-                                    stretch=d.stretch, active_zone_dn50=d.active_zone or ACTIVE_ZONE_DN50)
-            lap("damage (s)")
-            write_damage_report(result, reference_dem, dem, out / "damage")
-            lap("damage report and figures (s)")
-            a = result.averaged
-            row.update(A_e_m2=a.A_e, L_e_m=a.L_e, d_e_m=a.d_e, S=a.S, S_max=result.S_max, E2D=a.E2D,
-                       E3D=result.volumes.E3D, eroded_volume_m3=result.volumes.eroded_m3,
-                       accreted_volume_m3=result.volumes.accreted_m3, damage_level=result.level,
-                       stretch_y_m=f"{result.stretch[0]:.3f} to {result.stretch[1]:.3f}"
-                       + (" (whole width)" if result.whole_width else ""),
-                       active_zone_z_m=f"{result.active_zone[0]:.3f} to {result.active_zone[1]:.3f}")
+            row.update(_damage_row(job.damage, reference_dem, dem, out, lap))
     row["fingerprint"] = job.fingerprint
     write_text_atomic(out / RESULT, json.dumps({**row, "test": pair.test, "stage": pair.stage,
                                                 "reference": pair.reference}, indent=2, default=float) + "\n")
     return row
+
+
+def _damage_row(d, reference_dem, dem, out: Path, lap) -> dict:
+    """Damage of `dem` against the test's reference DEM with the manifest's settings `d`; the report is
+    written to `out/damage`; returns the summary row's damage columns."""
+    from .._surface.damage import parse_slope
+    from .._surface.damage_report import ACTIVE_ZONE_DN50, _column_mean, fit_design_slope, stretch_damage, write_damage_report
+
+    cot = parse_slope(d.slope)
+    origin = d.slope_origin
+    if d.fit_slope:
+        origin, _ = fit_design_slope(reference_dem.x, _column_mean(reference_dem.z), cot, d.swl, d.dn50)
+    result = stretch_damage(reference_dem, dem, d.dn50, cot, d.swl, origin, d.profile_spacing,
+                            stretch=d.stretch, active_zone_dn50=d.active_zone or ACTIVE_ZONE_DN50)
+    lap("damage (s)")
+    write_damage_report(result, reference_dem, dem, out / "damage")
+    lap("damage report and figures (s)")
+    a = result.averaged
+    return dict(A_e_m2=a.A_e, L_e_m=a.L_e, d_e_m=a.d_e, S=a.S, S_max=result.S_max, E2D=a.E2D,
+                E3D=result.volumes.E3D, eroded_volume_m3=result.volumes.eroded_m3,
+                accreted_volume_m3=result.volumes.accreted_m3, damage_level=result.level,
+                stretch_y_m=f"{result.stretch[0]:.3f} to {result.stretch[1]:.3f}"
+                + (" (whole width)" if result.whole_width else ""),
+                active_zone_z_m=f"{result.active_zone[0]:.3f} to {result.active_zone[1]:.3f}")
 
 
 def _remove_stale_temporaries(folder: Path) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 from pathlib import Path
@@ -10,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .._geometry.errors import JaxStereoError
+from .parser import build_parser
 
 
 def _cmd_incidence_report(args) -> int:
@@ -45,12 +45,49 @@ def _cmd_incidence_report(args) -> int:
 def _cmd_calibrate(args) -> int:
     from .._calibration.boards import BoardSpec
     from .._calibration.calibration import calibrate_stereo, detect_all, world_frame_rig
-    from .._calibration.detect import detect_board
-    from .._calibration.rig import save_rig
-    from .images import expand_images, read_image, read_images_same_size
+    from .._calibration.rig import Rig, save_rig
     from .plots import plot_calibration_errors
 
     board = BoardSpec.parse(args.board)
+    left_paths, right_paths, left_images, right_images, size = _calibration_images(args)
+    print(f"calibrate: {len(left_paths)} pairs of {size[0]}x{size[1]} images, board {board}")
+    left_det = detect_all(left_images, board)
+    right_det = detect_all(right_images, board)
+    origin = _origin_detections(args, board, size)
+    stereo = calibrate_stereo(left_det, right_det, board, size, drop_outliers=not args.keep_outliers,
+                              origin=None if args.no_refine else origin)
+    rig, report = world_frame_rig(stereo, board, origin[0], origin[1], refine=not args.no_refine)
+    names = [p.name for p in left_paths]
+    right_names = [p.name for p in right_paths]
+    calibration = {
+        "board": str(board),
+        "pairs": len(left_paths),
+        "left_views_used": [names[i] for i in stereo.left.views],
+        "right_views_used": [right_names[i] for i in stereo.right.views],
+        "dropped_left": [names[i] for i in stereo.left.dropped],
+        "dropped_right": [right_names[i] for i in stereo.right.dropped],
+        "pairs_missing_board": [names[i] for i in stereo.missing],
+        "rms_left_px": stereo.left.rms_px,
+        "rms_right_px": stereo.right.rms_px,
+        "rms_stereo_px": stereo.rms_px,
+        "baseline_m": stereo.baseline_m,
+        "distortion_model": stereo.distortion_model,
+        "focal_std_rel": stereo.focal_std_rel,
+        "world_frame": report,
+    }
+    rig = Rig(rig.left, rig.right, None, calibration)
+    _print_calibration(stereo, report, rig, calibration)
+    figure = Path(args.figure) if args.figure else Path(args.output).with_name(Path(args.output).stem + "_errors.png")
+    plot_calibration_errors(stereo, figure, names)
+    save_rig(rig, args.output)
+    print(f"rig: {args.output}\nfigure: {figure}")
+    return 0
+
+
+def _calibration_images(args):
+    """The calibration pairs: `(left paths, right paths, left images, right images, (width, height))`."""
+    from .images import expand_images, read_images_same_size
+
     left_paths = expand_images(args.left, "left images")
     right_paths = expand_images(args.right, "right images")
     if len(left_paths) != len(right_paths):
@@ -62,9 +99,14 @@ def _cmd_calibrate(args) -> int:
     right_images, size_r = read_images_same_size(right_paths)
     if size_r != size:
         raise JaxStereoError(f"left images are {size[0]}x{size[1]} but right images are {size_r[0]}x{size_r[1]}")
-    print(f"calibrate: {len(left_paths)} pairs of {size[0]}x{size[1]} images, board {board}")
-    left_det = detect_all(left_images, board)
-    right_det = detect_all(right_images, board)
+    return left_paths, right_paths, left_images, right_images, size
+
+
+def _origin_detections(args, board, size) -> tuple:
+    """The board lying on z = 0, detected in the origin pair; `JaxStereoError` naming the image otherwise."""
+    from .._calibration.detect import detect_board
+    from .images import read_image
+
     origin = []
     for path in (args.origin_left, args.origin_right):
         image = read_image(path, grayscale=True)
@@ -74,27 +116,11 @@ def _cmd_calibrate(args) -> int:
         if det is None:
             raise JaxStereoError(f"no board {board} found in origin image {path!r}")
         origin.append(det)
-    stereo = calibrate_stereo(left_det, right_det, board, size, drop_outliers=not args.keep_outliers,
-                              origin=None if args.no_refine else (origin[0], origin[1]))
-    rig, report = world_frame_rig(stereo, board, origin[0], origin[1], refine=not args.no_refine)
-    names = [p.name for p in left_paths]
-    calibration = {
-        "board": str(board),
-        "pairs": len(left_paths),
-        "left_views_used": [names[i] for i in stereo.left.views],
-        "right_views_used": [right_paths[i].name for i in stereo.right.views],
-        "dropped_left": [names[i] for i in stereo.left.dropped],
-        "dropped_right": [right_paths[i].name for i in stereo.right.dropped],
-        "pairs_missing_board": [names[i] for i in stereo.missing],
-        "rms_left_px": stereo.left.rms_px,
-        "rms_right_px": stereo.right.rms_px,
-        "rms_stereo_px": stereo.rms_px,
-        "baseline_m": stereo.baseline_m,
-        "distortion_model": stereo.distortion_model,
-        "focal_std_rel": stereo.focal_std_rel,
-        "world_frame": report,
-    }
-    rig = rig.__class__(rig.left, rig.right, None, calibration)
+    return origin[0], origin[1]
+
+
+def _print_calibration(stereo, report: dict, rig, calibration: dict) -> None:
+    """The calibration's figures as an aligned table on stdout, then the views it dropped."""
     heights = [float(np.asarray(c.center)[2]) for c in (rig.left, rig.right)]
     rows = [
         ("views used (left / right / pairs)", f"{len(stereo.left.views)} / {len(stereo.right.views)} / {len(stereo.pairs)}"),
@@ -115,11 +141,6 @@ def _cmd_calibrate(args) -> int:
                          ("board missing in a pair", calibration["pairs_missing_board"])):
         if items:
             print(f"  {label}: {', '.join(items)}")
-    figure = Path(args.figure) if args.figure else Path(args.output).with_name(Path(args.output).stem + "_errors.png")
-    plot_calibration_errors(stereo, figure, names)
-    save_rig(rig, args.output)
-    print(f"rig: {args.output}\nfigure: {figure}")
-    return 0
 
 
 def _cmd_reconstruct(args) -> int:
@@ -277,17 +298,33 @@ MIN_DENSE_CORRESPONDENCES = 100  # below this many dense matches, refine falls b
 
 
 def _cmd_refine(args) -> int:
-    from .._calibration.rig import Rig, load_rig, save_rig
-    from .._stereo.correspondences import dense_correspondences
-    from .._stereo.refine import find_correspondences, refine_rig
+    from .._calibration.rig import load_rig, save_rig
+    from .._stereo.refine import refine_rig
     from .images import check_pair, read_image
 
     rig = load_rig(args.rig)
     left, right = read_image(args.left), read_image(args.right)
     check_pair(left, right, rig.image_size, f"left image {args.left!r}", f"right image {args.right!r}")
     refine = tuple(v.strip() for v in args.refine.split(",") if v.strip())
+    control, points = _refine_control(args.control or [])
+    pl, pr = _refine_correspondences(args, left, right, rig)
+    result = refine_rig(rig, pl, pr, args.water_level_guess, refine=refine, control=control,
+                        floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points)
+    _print_refinement(result, refine, control, points)
+    if not result.converged:
+        raise JaxStereoError(f"the bundle adjustment {result.result} after {result.steps} steps: no rig written "
+                             "(check the level guess, the control and the correspondences)")
+    if "water" in refine and not result.level_determined:
+        result = _keep_guess_or_refuse(args, result)
+    save_rig(result.rig, args.output)
+    print(f"rig: {args.output}")
+    return 0
+
+
+def _refine_control(items: list[str]):
+    """`--control` values: `(surface, points)`, the surface "floor", a DEM or None, and the CSV's control points."""
     control, points = None, None
-    for item in args.control or []:
+    for item in items:
         if item.endswith(".csv"):
             points = _read_control_points(item)
             continue
@@ -303,6 +340,14 @@ def _cmd_refine(args) -> int:
                 raise JaxStereoError(f"control DEM {item!r} holds no heights")
         else:
             raise JaxStereoError(f"--control {item!r}: use 'floor', a DEM or survey .npz, or a control-points .csv")
+    return control, points
+
+
+def _refine_correspondences(args, left, right, rig):
+    """Correspondences from the dense matching (SIFT when it finds too few), or SIFT on request."""
+    from .._stereo.correspondences import dense_correspondences
+    from .._stereo.refine import find_correspondences
+
     if args.matches == "dense":
         pl, pr = dense_correspondences(left, right, rig, args.water_level_guess, args.max_points)
         source = "the dense matching"
@@ -312,8 +357,10 @@ def _cmd_refine(args) -> int:
         pl, pr = find_correspondences(left, right, args.max_points)
         source = "SIFT"
     print(f"refine: {len(pl)} correspondences from {source}")
-    result = refine_rig(rig, pl, pr, args.water_level_guess, refine=refine, control=control,
-                        floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points)
+    return pl, pr
+
+
+def _print_refinement(result, refine, control, points) -> None:
     print(f"  {result.n_correspondences} consistent with the rig, {result.n_control} control terms, "
           f"{result.steps} steps ({result.seconds:.1f} s)")
     for name, (value, std) in result.parameters.items():
@@ -325,25 +372,24 @@ def _cmd_refine(args) -> int:
         print(f"  control surface std (from the data) {1e3 * result.surface_sigma_m:.2f} mm, "
               f"{result.n_control - (0 if points is None else len(points[0]))} points on it")
     print(f"  solver                             {result.result}")
-    if not result.converged:
-        raise JaxStereoError(f"the bundle adjustment {result.result} after {result.steps} steps: no rig written "
-                             "(check the level guess, the control and the correspondences)")
-    if "water" in refine and not result.level_determined:
-        level, std = result.parameters["water level (m)"]
-        message = (f"water level not determined: {level:.4f} m +/- {1e3 * std:.1f} mm from {result.n_correspondences} "
-                   f"correspondences and {result.n_control} control terms; add control (--control floor with "
-                   "--floor-x, a dry DEM, control points)")
-        if not args.keep_guess:
-            raise JaxStereoError(message + ", or pass --keep-guess to write the rig at the guessed level")
-        print(f"  WATER LEVEL NOT DETERMINED ({message}); keeping the guess {args.water_level_guess:.4f} m (--keep-guess)")
-        kept = result.rig.interface.with_level(float(args.water_level_guess))
-        calibration = dict(result.rig.calibration)
-        calibration["refine"] = {**calibration["refine"], "level_kept_from_guess": True,
-                                 "note": "the images did not determine the level; the guess (gauge reading) was kept"}
-        result = dataclasses.replace(result, rig=Rig(result.rig.left, result.rig.right, kept, calibration))
-    save_rig(result.rig, args.output)
-    print(f"rig: {args.output}")
-    return 0
+
+
+def _keep_guess_or_refuse(args, result):
+    """An undetermined level: refuse (no rig), or with --keep-guess the rig at the guess, said so in its provenance."""
+    from .._calibration.rig import Rig
+
+    level, std = result.parameters["water level (m)"]
+    message = (f"water level not determined: {level:.4f} m +/- {1e3 * std:.1f} mm from {result.n_correspondences} "
+               f"correspondences and {result.n_control} control terms; add control (--control floor with "
+               "--floor-x, a dry DEM, control points)")
+    if not args.keep_guess:
+        raise JaxStereoError(message + ", or pass --keep-guess to write the rig at the guessed level")
+    print(f"  WATER LEVEL NOT DETERMINED ({message}); keeping the guess {args.water_level_guess:.4f} m (--keep-guess)")
+    kept = result.rig.interface.with_level(float(args.water_level_guess))
+    calibration = dict(result.rig.calibration)
+    calibration["refine"] = {**calibration["refine"], "level_kept_from_guess": True,
+                             "note": "the images did not determine the level; the guess (gauge reading) was kept"}
+    return dataclasses.replace(result, rig=Rig(result.rig.left, result.rig.right, kept, calibration))
 
 
 def _cmd_batch(args) -> int:
@@ -400,180 +446,29 @@ def _cmd_demo(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="jaxstereo",
-        description="Refraction-aware stereo photogrammetry of wave-flume models through the water surface.",
-    )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-
-    p = sub.add_parser("demo", help="the whole survey on a synthetic flume: calibrate, refine, reconstruct, damage",
-                       description="Builds a synthetic flume (board photographs, a breakwater, three damage stages) and "
-                       "runs calibrate, refine, reconstruct, grid and damage end to end; writes a report folder.")
-    p.add_argument("-o", "--output", default="jaxstereo-demo", help="report folder (default jaxstereo-demo)")
-    p.set_defaults(func=_cmd_demo)
-
-    p = sub.add_parser(
-        "batch", help="a whole campaign from a manifest: reconstruct, grid and damage every pair; resumable",
-        description="Runs every stereo pair of a campaign manifest (TOML) through reconstruct, grid and damage "
-        "against its test's reference stage. Finished pairs are skipped (resumable), a failing pair is logged and "
-        "skipped (exit status 1 at the end), and summary.csv plus a damage-versus-stage figure per test are "
-        "written. The manifest format is documented in the README.")
-    p.add_argument("manifest", metavar="MANIFEST|FOLDER",
-                   help="campaign manifest (TOML), or a folder of TEST_STAGE_L.png / TEST_STAGE_R.png pairs")
-    p.add_argument("--rig", help="rig JSON (folder of pairs only)")
-    p.add_argument("--water-level", type=float, help="water level, m (folder of pairs only)")
-    p.add_argument("--dn50", type=float, help="armour Dn50, m, for damage (folder of pairs only)")
-    p.add_argument("--slope", help="design slope, e.g. 1:2, for damage (folder of pairs only)")
-    p.add_argument("--swl", type=float, help="still water level, m, for damage (folder of pairs only)")
-    p.add_argument("--slope-origin", type=float, nargs=2, metavar=("X", "Z"),
-                   help="a point of the design slope line, m (folder of pairs only)")
-    p.add_argument("--fit-slope", action="store_true",
-                   help="fit the design slope to each test's reference survey (folder of pairs only)")
-    p.add_argument("--stretch", type=float, nargs=2, metavar=("Y0", "Y1"),
-                   help="the tested stretch, m (folder of pairs only; default the whole surveyed width)")
-    p.add_argument("--active-zone", type=float, nargs=2, metavar=("BELOW", "ABOVE"),
-                   help="erosion counted from BELOW to ABOVE Dn50 about the SWL (folder of pairs only; default 6 4)")
-    p.add_argument("-o", "--output", help="output folder (default: the manifest's output, or MANIFEST-out)")
-    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: this process)")
-    p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="run on a Dask distributed cluster (optional extra 'dask'), e.g. tcp://10.0.0.5:8786")
-    p.set_defaults(func=_cmd_batch)
-
-    p = sub.add_parser(
-        "incidence-report",
-        help="error of the first-order (virtual camera) model versus exact Snell, by incidence angle",
-        description="Tabulate and plot the first-order model's refraction-angle, pixel and 3-D error versus incidence.",
-    )
-    p.add_argument("--height", type=float, default=2.0, help="camera height above the water, m (default 2.0)")
-    p.add_argument("--depth", type=float, default=0.3, help="depth of the point below the water, m (default 0.3)")
-    p.add_argument("--baseline", type=float, default=0.16, help="stereo baseline, m (default 0.16)")
-    p.add_argument("--focal-px", type=float, default=3935.0, help="focal length, pixels (default 3935)")
-    p.add_argument("--n-air", type=float, default=1.0, help="refractive index of air (default 1.000)")
-    p.add_argument("--n-water", type=float, default=1.333, help="refractive index of water (default 1.333)")
-    p.add_argument("--max-deg", type=float, default=40.0, help="largest incidence angle, degrees (default 40)")
-    p.add_argument("--step-deg", type=float, default=5.0, help="step between angles, degrees (default 5)")
-    p.add_argument("-o", "--output", default="incidence-report.png", help="PNG figure to write")
-    p.add_argument("--markdown", help="also write the table to this Markdown file")
-    p.set_defaults(func=_cmd_incidence_report)
-
-    p = sub.add_parser(
-        "calibrate",
-        help="calibrate a stereo rig from board photographs; world frame Z up from a board on the floor",
-        description="Intrinsics of both cameras, their relative pose, and the world frame (z = 0 on the origin "
-        "board, Z up) from board photographs; writes the rig JSON and a PNG of per-view errors.",
-    )
-    p.add_argument("--left", required=True, help="left images (glob pattern, quoted)")
-    p.add_argument("--right", required=True, help="right images (glob pattern, quoted), same order")
-    p.add_argument("--board", required=True,
-                   help="chessboard:COLSxROWS:SQUARE (inner corners) or charuco:COLSxROWS:SQUARE:MARKER:DICT")
-    p.add_argument("--origin-left", required=True, help="left image of the board lying on z = 0")
-    p.add_argument("--origin-right", required=True, help="right image of the board lying on z = 0")
-    p.add_argument("-o", "--output", required=True, help="rig JSON to write")
-    p.add_argument("--figure", help="PNG of per-view errors (default: next to the rig, *_errors.png)")
-    p.add_argument("--keep-outliers", action="store_true", help="do not drop views with outlying errors")
-    p.add_argument("--no-refine", action="store_true",
-                   help="world frame from the origin board in the left image alone (solvePnP), not from the joint "
-                        "adjustment of the origin pair with the calibration pairs")
-    p.set_defaults(func=_cmd_calibrate)
-
-    p = sub.add_parser(
-        "reconstruct",
-        help="dense survey of a partly submerged scene from one stereo pair",
-        description="Rectify, match (SGBM) and triangulate a wet stereo pair with exact refraction (or the "
-        "first-order model, or none); writes the survey .npz, a preview PNG and a summary JSON.",
-    )
-    p.add_argument("left", help="left image")
-    p.add_argument("right", help="right image")
-    p.add_argument("--rig", required=True, help="rig JSON (from jaxstereo calibrate or refine)")
-    p.add_argument("--water-level", type=float, help="water level, m (world Z); default: the rig's interface, "
-                   "or a dry survey if it has none")
-    p.add_argument("--model", choices=["exact", "first-order", "none"], default="exact",
-                   help="refraction model for under-water points (default exact)")
-    p.add_argument("--z-range", type=float, nargs=2, metavar=("ZMIN", "ZMAX"),
-                   help="height range of the scene, m: bounds the disparity search and every point (default -0.03 to "
-                        "level + 0.4)")
-    p.add_argument("--block-size", type=int, default=5, help="SGBM block size, pixels (odd, default 5)")
-    p.add_argument("-o", "--output", required=True, help="survey .npz to write")
-    p.add_argument("--ply", help="also write the points as PLY")
-    p.add_argument("--preview", help="preview PNG (default: next to the survey, *_preview.png)")
-    p.set_defaults(func=_cmd_reconstruct)
-
-    p = sub.add_parser("refine", help="water level (and tilt, right-camera pose) from a wet pair by bundle adjustment",
-                       description="Bundle adjustment through exact refraction (optimistix): refines the water level, "
-                       "optionally the interface tilt and the right camera's pose, and writes the refined rig.")
-    p.add_argument("left", help="left image")
-    p.add_argument("right", help="right image")
-    p.add_argument("--rig", required=True, help="rig JSON")
-    p.add_argument("--water-level-guess", type=float, required=True, help="starting water level, m")
-    p.add_argument("--control", action="append", metavar="floor|DEM.npz|POINTS.csv",
-                   help="control: 'floor' (points on z = 0) or a dry survey of the model (DEM or survey .npz: "
-                   "the parts that did not move), and/or a CSV of control points "
-                   "(u_left,v_left,u_right,v_right,x,y,z); may be repeated")
-    p.add_argument("--floor-x", type=float, nargs=2, metavar=("XMIN", "XMAX"),
-                   help="world x range where the floor is bare (e.g. in front of the toe)")
-    p.add_argument("--refine", default="water", help="comma list of water, tilt, right-pose (default water)")
-    p.add_argument("--max-points", type=int, default=2000, help="correspondences to use (default 2000)")
-    p.add_argument("--matches", choices=["dense", "sift"], default="dense",
-                   help="correspondences from the dense matching, spread over the image (default; SIFT when it "
-                        "finds too few), or SIFT features")
-    p.add_argument("--keep-guess", action="store_true",
-                   help="when the images cannot determine the level, write the rig at the guessed level (said so in "
-                        "its provenance) instead of refusing")
-    p.add_argument("-o", "--output", required=True, help="refined rig JSON")
-    p.set_defaults(func=_cmd_refine)
-
-    p = sub.add_parser("grid", help="grid a survey into a DEM (median per cell, or Delaunay as the paper)",
-                       description="Grid a survey .npz into a DEM .npz (x, y, z with NaN where no data, spacing).")
-    p.add_argument("survey", help="survey .npz")
-    p.add_argument("--spacing", type=float, default=0.005, help="cell size, m (default 0.005)")
-    p.add_argument("--method", choices=["median", "delaunay"], default="median",
-                   help="median per cell (fast, robust; default) or linear on the Delaunay triangulation")
-    p.add_argument("--max-gap", type=float, default=0.0, help="fill holes up to this size, m (median only)")
-    p.add_argument("-o", "--output", required=True, help="DEM .npz to write")
-    p.set_defaults(func=_cmd_grid)
-
-    p = sub.add_parser("damage", help="armour-layer damage between two surveys or DEMs: S, E2D, E3D, volumes",
-                       description="Compare a before and an after survey (or DEM): per-profile and averaged damage "
-                       "(A_e, L_e, d_e, S, E2D), eroded and accreted volumes and E3D; JSON, CSV and PNG report.")
-    p.add_argument("before", help="survey or DEM .npz before the test")
-    p.add_argument("after", help="survey or DEM .npz after the test")
-    p.add_argument("--dn50", type=float, required=True, help="nominal diameter of the armour units, m")
-    p.add_argument("--slope", required=True, help="design slope: cotangent (2) or V:H (1:2)")
-    p.add_argument("--swl", type=float, required=True, help="still water level, m (world Z)")
-    p.add_argument("--slope-origin", type=float, nargs=2, metavar=("X", "Z"),
-                   help="a point of the design slope line (its toe, say), m")
-    p.add_argument("--slope-points", type=float, nargs=4, metavar=("X1", "Z1", "X2", "Z2"),
-                   help="two points of the design slope line, m (checked against --slope)")
-    p.add_argument("--fit-slope", action="store_true",
-                   help="fit the design slope line to the initial survey near the SWL (its fit error is printed)")
-    p.add_argument("--stretch", type=float, nargs=2, metavar=("Y0", "Y1"),
-                   help="the tested stretch (characterisation width), y from Y0 to Y1, m (default: the whole "
-                        "surveyed width)")
-    p.add_argument("--active-zone", type=float, nargs=2, metavar=("BELOW", "ABOVE"), default=None,
-                   help="count erosion from BELOW Dn50 under the SWL to ABOVE Dn50 over it, along the slope "
-                        "(default 6 4)")
-    p.add_argument("--spacing", type=float, default=0.005, help="grid spacing for surveys, m (default 0.005)")
-    p.add_argument("--max-gap", type=float, default=0.01, help="fill holes up to this size, m (default 0.01)")
-    p.add_argument("--profile-spacing", type=float, help="distance between profiles, m (default Dn50)")
-    p.add_argument("-o", "--output", required=True, help="report folder")
-    p.set_defaults(func=_cmd_damage)
-    return parser
-
-
 def main(argv=None) -> int:
     """Run the command line; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
+    if not args.command:
         parser.print_help()
         return 0
+    handler = {
+        "demo": _cmd_demo,
+        "batch": _cmd_batch,
+        "incidence-report": _cmd_incidence_report,
+        "calibrate": _cmd_calibrate,
+        "reconstruct": _cmd_reconstruct,
+        "refine": _cmd_refine,
+        "grid": _cmd_grid,
+        "damage": _cmd_damage,
+    }[args.command]
     import jax
 
     _use_compilation_cache(jax)
     try:
         with jax.enable_x64(True):  # geometry in float64, for this command only
-            return args.func(args)
+            return handler(args)
     except (JaxStereoError, OSError) as err:
         print(f"jaxstereo {args.command}: error: {err}", file=sys.stderr)
         return 2

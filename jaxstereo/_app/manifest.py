@@ -215,49 +215,64 @@ def manifest_from_dict(data: dict, path: Path, base: Path) -> Manifest:
     model = data.get("model", "exact")
     if model not in ("exact", "first-order", "none"):
         _fail(path, f"model must be exact, first-order or none, got {model!r}")
-    z_range = data.get("z_range")
-    if z_range is not None:
-        if (not isinstance(z_range, list) or len(z_range) != 2
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in z_range)
-                or not z_range[0] < z_range[1]):
-            _fail(path, f"z_range must be [ZMIN, ZMAX] in metres with ZMIN < ZMAX, got {z_range!r}")
-        z_range = (float(z_range[0]), float(z_range[1]))
+    z_range = _z_range(path, data.get("z_range"))
     spacing = _number(path, data, "spacing", "", 0.005, positive=True)
     max_gap = _number(path, data, "max_gap", "", 0.01)
     if max_gap < 0:
         _fail(path, f"max_gap must not be negative, got {max_gap}")
     default_level = _number(path, data, "water_level", "")
-    damage = None
-    if "damage" in data:
-        table = data["damage"]
-        if not isinstance(table, dict):
-            _fail(path, "[damage] must be a table")
-        unknown = set(table) - _DAMAGE_KEYS
-        if unknown:
-            _fail(path, f"[damage] has unknown key(s) {', '.join(sorted(unknown))}")
-        for key in ("dn50", "slope", "swl"):
-            if key not in table:
-                _fail(path, f"[damage] needs {key}")
-        origin, stretch, zone = (_pair_of_numbers(path, table, key) for key in ("slope_origin", "stretch",
-                                                                                  "active_zone"))
-        fit = table.get("fit_slope", False)
-        if not isinstance(fit, bool):
-            _fail(path, f"[damage] fit_slope must be true or false, got {fit!r}")
-        from .._surface.damage import parse_slope
+    damage = _damage_settings(path, data["damage"]) if "damage" in data else None
+    pairs = [_pair_entry(path, base, entry, i, default_level) for i, entry in enumerate(_raw_pairs(path, base, data))]
+    output = data.get("output", path.stem + "-out")
+    if not isinstance(output, str):
+        _fail(path, "output must be a folder name")
+    return Manifest(path.resolve(), rig, model, z_range, spacing, max_gap, damage, _references_first(path, pairs),
+                    (base / output).resolve())
 
-        try:
-            parse_slope(str(table["slope"]))
-        except JaxStereoError as err:
-            _fail(path, f"[damage] {err}")
-        if (origin is None) == (not fit):
-            _fail(path, "[damage] place the design slope with exactly one of slope_origin = [X, Z] (its toe, say) "
-                        "or fit_slope = true")
-        damage = DamageSettings(
-            dn50=_number(path, table, "dn50", "[damage] ", positive=True), slope=str(table["slope"]),
-            swl=_number(path, table, "swl", "[damage] "), slope_origin=origin,
-            profile_spacing=_number(path, table, "profile_spacing", "[damage] ", positive=True), fit_slope=fit,
-            stretch=stretch, active_zone=zone)
 
+def _z_range(path: Path, z_range) -> tuple[float, float] | None:
+    """The manifest's `z_range = [ZMIN, ZMAX]` (metres) checked, or None."""
+    if z_range is None:
+        return None
+    if (not isinstance(z_range, list) or len(z_range) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in z_range)
+            or not z_range[0] < z_range[1]):
+        _fail(path, f"z_range must be [ZMIN, ZMAX] in metres with ZMIN < ZMAX, got {z_range!r}")
+    return float(z_range[0]), float(z_range[1])
+
+
+def _damage_settings(path: Path, table) -> DamageSettings:
+    """The `[damage]` table checked."""
+    if not isinstance(table, dict):
+        _fail(path, "[damage] must be a table")
+    unknown = set(table) - _DAMAGE_KEYS
+    if unknown:
+        _fail(path, f"[damage] has unknown key(s) {', '.join(sorted(unknown))}")
+    for key in ("dn50", "slope", "swl"):
+        if key not in table:
+            _fail(path, f"[damage] needs {key}")
+    origin, stretch, zone = (_pair_of_numbers(path, table, key) for key in ("slope_origin", "stretch", "active_zone"))
+    fit = table.get("fit_slope", False)
+    if not isinstance(fit, bool):
+        _fail(path, f"[damage] fit_slope must be true or false, got {fit!r}")
+    from .._surface.damage import parse_slope
+
+    try:
+        parse_slope(str(table["slope"]))
+    except JaxStereoError as err:
+        _fail(path, f"[damage] {err}")
+    if (origin is None) == (not fit):
+        _fail(path, "[damage] place the design slope with exactly one of slope_origin = [X, Z] (its toe, say) "
+                    "or fit_slope = true")
+    return DamageSettings(
+        dn50=_number(path, table, "dn50", "[damage] ", positive=True), slope=str(table["slope"]),
+        swl=_number(path, table, "swl", "[damage] "), slope_origin=origin,
+        profile_spacing=_number(path, table, "profile_spacing", "[damage] ", positive=True), fit_slope=fit,
+        stretch=stretch, active_zone=zone)
+
+
+def _raw_pairs(path: Path, base: Path, data: dict) -> list:
+    """The pairs as listed: `[[pair]]` tables, or those found in the `pairs = "FOLDER"` folder."""
     if "pair" in data and "pairs" in data:
         _fail(path, "give either [[pair]] tables or pairs = \"FOLDER\", not both")
     if "pairs" in data:
@@ -266,35 +281,41 @@ def manifest_from_dict(data: dict, path: Path, base: Path) -> Manifest:
         stages = data.get("stages")
         if stages is not None and not (isinstance(stages, list) and all(isinstance(s, str) for s in stages)):
             _fail(path, "stages must be a list of stage names")
-        raw = _pairs_from_folder(path, (base / data["pairs"]).resolve(), stages)
-    else:
-        raw = data.get("pair")
-        if not isinstance(raw, list) or not raw:
-            _fail(path, "lists no pairs: add [[pair]] tables (test, stage, left, right) or pairs = \"FOLDER\"")
-    pairs = []
+        return _pairs_from_folder(path, (base / data["pairs"]).resolve(), stages)
+    raw = data.get("pair")
+    if not isinstance(raw, list) or not raw:
+        _fail(path, "lists no pairs: add [[pair]] tables (test, stage, left, right) or pairs = \"FOLDER\"")
+    return raw
+
+
+def _pair_entry(path: Path, base: Path, entry, i: int, default_level: float | None) -> PairEntry:
+    """Pair `i` (0-based) checked."""
+    where = f"pair {i + 1}: "
+    if not isinstance(entry, dict):
+        _fail(path, f"{where}must be a table")
+    unknown = set(entry) - _PAIR_KEYS
+    if unknown:
+        _fail(path, f"{where}unknown key(s) {', '.join(sorted(unknown))}")
+    test, stage = _name(path, entry, "test", where), _name(path, entry, "stage", where)
+    files = []
+    for side in ("left", "right"):
+        if not isinstance(entry.get(side), str):
+            _fail(path, f"{where}needs {side} = \"IMAGE\"")
+        files.append((base / entry[side]).resolve())
+    reference = entry.get("reference", False)
+    if not isinstance(reference, bool):
+        _fail(path, f"{where}reference must be true or false")
+    level = _number(path, entry, "water_level", where)
+    return PairEntry(test, stage, files[0], files[1], level if level is not None else default_level, reference, i)
+
+
+def _references_first(path: Path, pairs: list[PairEntry]) -> tuple[PairEntry, ...]:
+    """Each test's pairs, its reference stage first (the marked one, else its first listed); no pair twice."""
     seen = set()
-    for i, entry in enumerate(raw):
-        where = f"pair {i + 1}: "
-        if not isinstance(entry, dict):
-            _fail(path, f"{where}must be a table")
-        unknown = set(entry) - _PAIR_KEYS
-        if unknown:
-            _fail(path, f"{where}unknown key(s) {', '.join(sorted(unknown))}")
-        test, stage = _name(path, entry, "test", where), _name(path, entry, "stage", where)
-        if (test, stage) in seen:
-            _fail(path, f"{where}test {test} stage {stage} is listed twice")
-        seen.add((test, stage))
-        files = []
-        for side in ("left", "right"):
-            if not isinstance(entry.get(side), str):
-                _fail(path, f"{where}needs {side} = \"IMAGE\"")
-            files.append((base / entry[side]).resolve())
-        reference = entry.get("reference", False)
-        if not isinstance(reference, bool):
-            _fail(path, f"{where}reference must be true or false")
-        level = _number(path, entry, "water_level", where)
-        pairs.append(PairEntry(test, stage, files[0], files[1], level if level is not None else default_level,
-                               reference, i))
+    for pair in pairs:
+        if (pair.test, pair.stage) in seen:
+            _fail(path, f"pair {pair.index + 1}: test {pair.test} stage {pair.stage} is listed twice")
+        seen.add((pair.test, pair.stage))
     ordered = []
     for test in dict.fromkeys(p.test for p in pairs):
         group = [p for p in pairs if p.test == test]
@@ -305,8 +326,4 @@ def manifest_from_dict(data: dict, path: Path, base: Path) -> Manifest:
         ref = refs[0] if refs else group[0]
         ordered.append(dataclasses.replace(ref, reference=True))
         ordered.extend(p for p in group if p is not ref)
-    output = data.get("output", path.stem + "-out")
-    if not isinstance(output, str):
-        _fail(path, "output must be a folder name")
-    return Manifest(path.resolve(), rig, model, z_range, spacing, max_gap, damage, tuple(ordered),
-                    (base / output).resolve())
+    return tuple(ordered)

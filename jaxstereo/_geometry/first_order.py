@@ -34,6 +34,11 @@ def virtual_camera(camera: Camera, interface: Interface) -> Camera:
     to `n H` above the plane.
     """
     check_camera_above(camera.center, interface)
+    return _virtual_camera(camera, interface)
+
+
+def _virtual_camera(camera: Camera, interface: Interface) -> Camera:
+    """`virtual_camera` for callers that checked the camera's height once at their own boundary."""
     n = interface.ratio
     height = interface.height_of(camera.center)
     center = camera.center + (n - 1.0) * height * interface.normal
@@ -66,7 +71,8 @@ def first_order_homography(camera: Camera, interface: Interface) -> Float[Array,
     Both cameras see the interface plane; a real pixel maps to the virtual pixel of the same
     interface point. Apply it to undistorted pixels (`camera.undistort_pixels`) in homogeneous form.
     """
-    virtual = virtual_camera(camera, interface)
+    check_camera_above(camera.center, interface)
+    virtual = _virtual_camera(camera, interface)
     H = _plane_to_image(virtual, interface) @ jnp.linalg.inv(_plane_to_image(camera, interface))
     return H / H[2, 2]
 
@@ -82,7 +88,8 @@ def project_first_order(
     as plain pinhole points. Returns `(pixels, valid)` as `project_refracted` does.
     """
     check_shape("points_world", points_world, (3,))
-    virtual = virtual_camera(camera, interface)
+    check_camera_above(camera.center, interface)
+    virtual = _virtual_camera(camera, interface)
     c_virtual = virtual.center
     d = points_world - c_virtual
     hit, _ = intersect_plane(jnp.broadcast_to(c_virtual, d.shape), d, interface.normal, interface.level)
@@ -102,7 +109,8 @@ def backproject_first_order(
     reach the water.
     """
     check_shape("pixels", pixels, (2,))
-    virtual = virtual_camera(camera, interface)
+    check_camera_above(camera.center, interface)
+    virtual = _virtual_camera(camera, interface)
     origin, d = camera.backproject(pixels)
     hit, s = intersect_plane(origin, d, interface.normal, interface.level)
     direction = hit - virtual.center

@@ -26,14 +26,14 @@ from scipy import ndimage
 from .._calibration.rig import Rig, rig_to_dict
 from .._geometry.camera import Camera
 from .._geometry.errors import JaxStereoError
-from .._geometry.first_order import virtual_camera
+from .._geometry.first_order import _virtual_camera
 from .._geometry.interface import Interface, check_camera_above
 from .._geometry.precision import float64
 from .._geometry.refraction import intersect_plane
 from .._geometry.triangulate import triangulate_rays
 from .epipolar import disparity_bounds, exact_row_offset, triangulate_exact
 from .matching import MatchOptions, disparity_search_range, refine_disparity, sgbm_disparity
-from .rectify import Rectification, rectification_maps, rectified_rays, rectify, remap
+from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, remap
 from .survey import Survey
 
 log = logging.getLogger("jaxstereo")
@@ -157,7 +157,7 @@ def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera,
             water = []
             for cam, (o, d, _) in zip((left_cam, right_cam), rays):
                 hit, s = intersect_plane(o, d, interface.normal, interface.level)
-                direction = hit - virtual_camera(cam, interface).center
+                direction = hit - _virtual_camera(cam, interface).center
                 water.append((hit, direction / jnp.linalg.norm(direction, axis=-1, keepdims=True), s > 0))
             p_water, gap_water = triangulate_rays(water[0][0], water[0][1], water[1][0], water[1][1])
             submerged = interface.height_of(points) < 0
@@ -237,7 +237,7 @@ def reconstruct(
     _check_inputs(left_image, right_image, rig, interface, z_range)
     model = options.model if interface is not None else "none"
     mode = "water" if model != "none" else "air"
-    rect = rectify(rig.left, rig.right, interface, mode)
+    rect = rectify_checked(rig.left, rig.right, interface, mode)
     rect_l, rect_r, disparity, search, left_map = _match(rect, rig, interface, left_image, right_image, z_range,
                                                          options)
     timings["rectify+match (s)"] = time.perf_counter() - t0
@@ -249,34 +249,10 @@ def reconstruct(
     timings["sub-pixel (s)"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    rl, rr, v, u = _pairs_from_disparity(disparity)
-    if offset is not None:
-        rr[:, 1] += offset[v, u]
-    if rl.shape[0] == 0:
-        raise JaxStereoError("no matches survived: SGBM found no match in the expected depth range (no shared texture?)")
-    points, gap, submerged, ok, distance = _chunked(
-        _triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model), rl, rr)
-    focal = float(rect.K[0, 0])
-    gap_px = gap * focal / np.maximum(distance, 1e-9)
-    finite = ok & np.all(np.isfinite(points), axis=1)
-    meets = finite & (gap_px <= options.max_ray_gap_px)
-    inside = (points[:, 2] >= z_range[0]) & (points[:, 2] <= z_range[1])
-    keep = np.nonzero(meets & inside)[0]
+    kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px)
     timings["triangulate (s)"] = time.perf_counter() - t2
-
-    colour = rect_l[v[keep], u[keep]]
-    survey = Survey(
-        points=points[keep],
-        colors=(colour if colour.ndim == 2 else np.repeat(colour[:, None], 3, axis=1)).astype(np.uint8),
-        pixels=np.stack([left_map[0][v[keep], u[keep]], left_map[1][v[keep], u[keep]]], axis=-1).astype(np.float64),
-        submerged=submerged[keep].astype(bool),
-        rig_json=json.dumps(rig_to_dict(rig.with_interface(interface)), default=float),
-        model=options.model,
-        water_level=level if level is not None else float("nan"),
-    )
-    if len(survey) == 0:
-        raise JaxStereoError("no matches survived: the images share no matchable texture in the expected depth range")
-    under = offset[v[keep], u[keep]][survey.submerged] if offset is not None else np.zeros(0)
+    survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model)
+    under = offset[kept.v, kept.u][survey.submerged] if offset is not None else np.zeros(0)
     summary = {
         "points": len(survey),
         "submerged_fraction": float(survey.submerged.mean()),
@@ -284,13 +260,60 @@ def reconstruct(
         "water_level_m": survey.water_level,
         "rectification": mode,
         "disparity_search_px": [search[0], search[0] + search[1]],
-        "matches": int(rl.shape[0]),
-        "dropped_rays_apart": int(np.sum(finite & ~meets)),
-        "dropped_outside_height_range": int(np.sum(meets & ~inside)),
-        "dropped_invalid_rays": int(np.sum(~finite)),
+        **kept.counts,
         "vertical_parallax_px_mean": float(np.mean(np.abs(under))) if under.size else 0.0,
         "vertical_parallax_px_max": float(np.max(np.abs(under))) if under.size else 0.0,
-        "median_ray_gap_px": float(np.median(gap_px[keep])),
+        "median_ray_gap_px": kept.median_gap_px,
         "seconds": timings,
     }
     return survey, summary
+
+
+@dataclasses.dataclass(frozen=True)
+class _Kept:
+    """The matches that became points: their left rectified pixels (`v`, `u`), points (k, 3) world metres,
+    submerged flags (k,), the match counts and drops by reason, and the median ray gap (pixels)."""
+
+    v: np.ndarray
+    u: np.ndarray
+    points: np.ndarray
+    submerged: np.ndarray
+    counts: dict
+    median_gap_px: float
+
+
+def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offset, z_range, max_ray_gap_px) -> _Kept:
+    """Triangulate every match (exactly, chunked); keep those whose rays meet within `max_ray_gap_px` and
+    whose point lies in `z_range`."""
+    rl, rr, v, u = _pairs_from_disparity(disparity)
+    if offset is not None:
+        rr[:, 1] += offset[v, u]
+    if rl.shape[0] == 0:
+        raise JaxStereoError("no matches survived: SGBM found no match in the expected depth range (no shared texture?)")
+    points, gap, submerged, ok, distance = _chunked(
+        _triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model), rl, rr)
+    gap_px = gap * float(rect.K[0, 0]) / np.maximum(distance, 1e-9)
+    finite = ok & np.all(np.isfinite(points), axis=1)
+    meets = finite & (gap_px <= max_ray_gap_px)
+    inside = (points[:, 2] >= z_range[0]) & (points[:, 2] <= z_range[1])
+    keep = np.nonzero(meets & inside)[0]
+    if keep.size == 0:
+        raise JaxStereoError("no matches survived: the images share no matchable texture in the expected depth range")
+    counts = {"matches": int(rl.shape[0]), "dropped_rays_apart": int(np.sum(finite & ~meets)),
+              "dropped_outside_height_range": int(np.sum(meets & ~inside)), "dropped_invalid_rays": int(np.sum(~finite))}
+    return _Kept(v[keep], u[keep], points[keep], submerged[keep].astype(bool), counts, float(np.median(gap_px[keep])))
+
+
+def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str) -> Survey:
+    """The survey of the kept points: colours from the left rectified image, pixels of the real left image."""
+    colour = rect_l[kept.v, kept.u]
+    level = float(interface.level) if interface is not None else float("nan")
+    return Survey(
+        points=kept.points,
+        colors=(colour if colour.ndim == 2 else np.repeat(colour[:, None], 3, axis=1)).astype(np.uint8),
+        pixels=np.stack([left_map[0][kept.v, kept.u], left_map[1][kept.v, kept.u]], axis=-1).astype(np.float64),
+        submerged=kept.submerged,
+        rig_json=json.dumps(rig_to_dict(rig.with_interface(interface)), default=float),
+        model=model,
+        water_level=level,
+    )

@@ -17,8 +17,8 @@ from jaxtyping import Array, Float
 
 from .._geometry.camera import Camera
 from .._geometry.errors import JaxStereoError
-from .._geometry.first_order import virtual_camera
-from .._geometry.interface import Interface
+from .._geometry.first_order import _virtual_camera
+from .._geometry.interface import Interface, check_camera_above
 from .._geometry.refraction import intersect_plane
 
 
@@ -57,9 +57,14 @@ def rectify(left: Camera, right: Camera, interface: Interface | None, mode: str)
     if mode == "water":
         if interface is None:
             raise JaxStereoError("water rectification needs the interface (water level)")
-        cams = (virtual_camera(left, interface), virtual_camera(right, interface))
-    else:
-        cams = (left, right)
+        check_camera_above(left.center, interface, "left camera")
+        check_camera_above(right.center, interface, "right camera")
+    return rectify_checked(left, right, interface, mode)
+
+
+def rectify_checked(left: Camera, right: Camera, interface: Interface | None, mode: str) -> Rectification:
+    """`rectify` for callers that validated the mode, the interface and the cameras' heights once already."""
+    cams = (_virtual_camera(left, interface), _virtual_camera(right, interface)) if mode == "water" else (left, right)
     c0, c1 = (np.asarray(c.center, dtype=np.float64) for c in cams)
     x = c1 - c0
     if np.linalg.norm(x) == 0:

@@ -452,12 +452,7 @@ def refine_rig(
     """
     start = time.perf_counter()
     which = _check_which(refine)
-    pl = np.asarray(left_pixels, dtype=np.float64).reshape(-1, 2)
-    pr = np.asarray(right_pixels, dtype=np.float64).reshape(-1, 2)
-    if pl.shape != pr.shape:
-        raise JaxStereoError(f"{pl.shape[0]} left but {pr.shape[0]} right correspondences")
-    if pl.shape[0] < MIN_CORRESPONDENCES:
-        raise JaxStereoError(f"only {pl.shape[0]} correspondences; at least {MIN_CORRESPONDENCES} are needed")
+    pl, pr = _checked_pixels(left_pixels, right_pixels)
     model, guess = _build_model(rig, level_guess, which)
     check_camera_above(rig.left.center, guess, "left camera")
     check_camera_above(rig.right.center, guess, "right camera")
@@ -467,29 +462,14 @@ def refine_rig(
     if floor_region is not None:
         in_region = (points0[:, 0] >= floor_region[0]) & (points0[:, 0] <= floor_region[1])
     mask, heights = _initial_control(control, points0, in_region, floor_z, floor_band_m)
-    gcp = _NO_GCP
-    if control_points is not None:
-        gcp = tuple(np.asarray(a, dtype=np.float64).reshape(-1, k) for a, k in zip(control_points, (2, 2, 3)))
-        if not (gcp[0].shape[0] == gcp[1].shape[0] == gcp[2].shape[0]):
-            raise JaxStereoError("control points: left pixels, right pixels and coordinates differ in number")
+    gcp = _checked_control_points(control_points)
     data = _Data(model, pl, pr, gcp, pixel_sigma, control_sigma_m, robust_sigmas)
     base_sigma = dem_sigma_m if isinstance(control, DEM) else floor_sigma_m
-    surface_sigma = base_sigma
     theta0 = jnp.zeros(model.size)
-    theta, outcome, steps = _solve(data.problem(mask, heights, surface_sigma), theta0, max_steps)
-    outcomes = [outcome]
-    if control is not None:
-        for _ in range(2):
-            mask, heights, surface_sigma = _reselect(data, theta, control, in_region, heights, base_sigma,
-                                                     surface_sigma, floor_band_m)
-            theta, outcome, steps = _solve(data.problem(mask, heights, surface_sigma), theta, max_steps)
-            outcomes.append(outcome)
+    theta, mask, heights, surface_sigma, outcomes, steps = _solve_and_reselect(
+        data, theta0, control, mask, heights, in_region, base_sigma, floor_band_m, max_steps)
     problem = data.problem(mask, heights, surface_sigma)
-    args = problem[0]
-    n_reproj = 4 * _padded_size(len(pl))
-    live = np.tile(np.arange(_padded_size(len(pl))) < len(pl), 4)
-    rms_before, rms_after = (float(np.sqrt(np.mean(np.asarray(_residuals_jit(t, args))[:n_reproj][live] ** 2) * 2))
-                             for t in (theta0, theta))
+    rms_before, rms_after = (_reprojection_rms(t, problem, len(pl)) for t in (theta0, theta))
     size = _padded_size(len(pl))
     groups = [np.concatenate([j * size + np.arange(len(pl)) for j in range(4)]), 4 * size + np.nonzero(mask)[0],
               5 * size + np.arange(3 * gcp[0].shape[0])]
@@ -513,6 +493,53 @@ def refine_rig(
     return RefineResult(refined, params, determined, rms_before, rms_after, int(len(pl)),
                         int(mask.sum()) + int(gcp[0].shape[0]), steps, outcomes[-1], time.perf_counter() - start,
                         surface_sigma, converged, fit_std, frame_std)
+
+
+def _checked_pixels(left_pixels, right_pixels) -> tuple[np.ndarray, np.ndarray]:
+    """Correspondences as (n, 2) float64 pixel arrays; `JaxStereoError` if they differ in number or are too few."""
+    pl = np.asarray(left_pixels, dtype=np.float64).reshape(-1, 2)
+    pr = np.asarray(right_pixels, dtype=np.float64).reshape(-1, 2)
+    if pl.shape != pr.shape:
+        raise JaxStereoError(f"{pl.shape[0]} left but {pr.shape[0]} right correspondences")
+    if pl.shape[0] < MIN_CORRESPONDENCES:
+        raise JaxStereoError(f"only {pl.shape[0]} correspondences; at least {MIN_CORRESPONDENCES} are needed")
+    return pl, pr
+
+
+def _checked_control_points(control_points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`(left (k, 2), right (k, 2), xyz (k, 3))` float64 arrays of the control points (none: k = 0)."""
+    if control_points is None:
+        return _NO_GCP
+    gcp = tuple(np.asarray(a, dtype=np.float64).reshape(-1, k) for a, k in zip(control_points, (2, 2, 3)))
+    if not (gcp[0].shape[0] == gcp[1].shape[0] == gcp[2].shape[0]):
+        raise JaxStereoError("control points: left pixels, right pixels and coordinates differ in number")
+    return gcp
+
+
+def _solve_and_reselect(data: "_Data", theta0, control, mask, heights, in_region, base_sigma: float,
+                        floor_band_m: float, max_steps: int):
+    """Solve, then twice re-select the control terms at the solution and solve again (with a control).
+
+    **Returns:** `(theta, mask, heights, surface_sigma, outcomes, steps)`: the final parameters and control
+    selection, the control's standard deviation (metres), each solve's outcome in words, the last's steps.
+    """
+    surface_sigma = base_sigma
+    theta, outcome, steps = _solve(data.problem(mask, heights, surface_sigma), theta0, max_steps)
+    outcomes = [outcome]
+    for _ in range(2 if control is not None else 0):
+        mask, heights, surface_sigma = _reselect(data, theta, control, in_region, heights, base_sigma,
+                                                 surface_sigma, floor_band_m)
+        theta, outcome, steps = _solve(data.problem(mask, heights, surface_sigma), theta, max_steps)
+        outcomes.append(outcome)
+    return theta, mask, heights, surface_sigma, outcomes, steps
+
+
+def _reprojection_rms(theta, problem, n: int) -> float:
+    """RMS reprojection error (pixels, per image coordinate pair) of the `n` live correspondences at `theta`."""
+    size = _padded_size(n)
+    live = np.tile(np.arange(size) < n, 4)
+    residuals = np.asarray(_residuals_jit(theta, problem[0]))[:4 * size][live]
+    return float(np.sqrt(np.mean(residuals**2) * 2))
 
 
 @float64

@@ -253,13 +253,17 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
 def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir: PathLike) -> list[Path]:
     """Write `damage.json`, `profiles.csv`, `profile.png` (averaged profiles, eroded area shaded) and
     `difference.png` (DEM difference map) to `out_dir`, each atomically. Returns the paths."""
-    from .._app.plots import new_figure, save_figure
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    paths = []
     write_text_atomic(out / "damage.json", json.dumps(result.to_dict(), indent=2) + "\n")
-    paths.append(out / "damage.json")
+    write_text_atomic(out / "profiles.csv", _profiles_csv(result))
+    _plot_averaged_profile(result, before, after, out / "profile.png")
+    _plot_difference(result, before, after, out / "difference.png")
+    return [out / name for name in ("damage.json", "profiles.csv", "profile.png", "difference.png")]
+
+
+def _profiles_csv(result: StretchDamage) -> str:
+    """One row per profile (y order): its damage and level, or why it was not computed."""
     buf = io.StringIO()
     writer = csv.writer(buf)
     writer.writerow(["y_m", "A_e_m2", "L_e_m", "d_e_m", "S", "E2D", "damage_level", "note"])
@@ -270,8 +274,13 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir:
         else:
             writer.writerow([f"{y:.4f}", f"{p.A_e:.6g}", f"{p.L_e:.5g}", f"{p.d_e:.5g}", f"{p.S:.4g}", f"{p.E2D:.4g}",
                              damage_level(p.S, result.cot), ""])
-    write_text_atomic(out / "profiles.csv", buf.getvalue())
-    paths.append(out / "profiles.csv")
+    return buf.getvalue()
+
+
+def _plot_averaged_profile(result: StretchDamage, before: DEM, after: DEM, path: Path) -> None:
+    """The stretch's averaged profiles before and after, the active zone, eroded and accreted areas shaded."""
+    from .._app.plots import new_figure, save_figure
+
     in_stretch = (before.y >= result.stretch[0]) & (before.y <= result.stretch[1])
     both = np.isfinite(before.z) & np.isfinite(after.z) & in_stretch[:, None]
     zb = _column_mean(np.where(both, before.z, np.nan))
@@ -289,8 +298,7 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir:
     xs = np.array([before.x[0], before.x[-1]])
     ax.plot(xs, z0 + (xs - x0) / result.cot, ls="--", color="0.6", lw=0.8, label=f"design slope 1:{result.cot:g}")
     ax.axhline(result.swl, color="tab:blue", lw=0.8, ls=":", label="SWL")
-    lo, hi = np.nanmin(zb), np.nanmax(zb)
-    ax.set_ylim(lo - 0.05, hi + 0.05)
+    ax.set_ylim(np.nanmin(zb) - 0.05, np.nanmax(zb) + 0.05)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("z (m)")
     e3d = "not measurable" if result.volumes.E3D is None else f"{result.volumes.E3D:.2f}"
@@ -298,8 +306,12 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir:
                  f"({result.level} on 1:{result.cot:g}), E2D = {result.averaged.E2D:.2f}, E3D = {e3d}", fontsize=9)
     ax.legend(fontsize=8, loc="upper left")
     ax.grid(alpha=0.3)
-    save_figure(fig, out / "profile.png")
-    paths.append(out / "profile.png")
+    save_figure(fig, path)
+
+
+def _plot_difference(result: StretchDamage, before: DEM, after: DEM, path: Path) -> None:
+    """Map of the DEM difference (mm), the stretch's edges and the E3D disc's place."""
+    from .._app.plots import new_figure, save_figure
 
     fig, ax = new_figure(figsize=(8, 5))
     diff = 1e3 * (after.z - before.z)
@@ -317,6 +329,4 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir:
                  f"accreted {1e6 * result.volumes.accreted_m3:.0f} cm^3")
     ax.legend(fontsize=8)
     fig.colorbar(im, ax=ax, label="after - before (mm)")
-    save_figure(fig, out / "difference.png")
-    paths.append(out / "difference.png")
-    return paths
+    save_figure(fig, path)

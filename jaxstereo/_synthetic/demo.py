@@ -8,10 +8,9 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .._app.images import write_image
@@ -25,6 +24,8 @@ from .._geometry.errors import JaxStereoError
 from .._geometry.incidence import incidence_report, plot_incidence_report
 from .._geometry.interface import Interface
 from .._geometry.pose import Pose
+from .._geometry.precision import float64
+from .._geometry.types import PathLike
 from .._stereo.correspondences import dense_correspondences
 from .._stereo.reconstruct import ReconstructOptions, reconstruct
 from .._stereo.refine import refine_rig
@@ -45,7 +46,8 @@ STAGES = (("I", None), ("II", Damage(half_length_dn50=2.0, half_width_dn50=3.0, 
           ("III", Damage(half_length_dn50=3.0, half_width_dn50=3.5, deep_fraction=0.6, swl_m=SWL)))
 
 
-def run_demo(out_dir="jaxstereo-demo", log=print) -> dict:
+@float64
+def run_demo(out_dir: PathLike = "jaxstereo-demo", log: Callable[[str], object] = print) -> dict:
     """Run the demo into `out_dir`; returns the summary dict (also written as `summary.json`)."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -57,96 +59,117 @@ def run_demo(out_dir="jaxstereo-demo", log=print) -> dict:
     def step(message):
         log(f"[{time.perf_counter() - started:5.1f} s] {message}")
 
-    with jax.enable_x64(True):
-        spec = realistic_rig_spec(image_size=SIZE, water_level_m=SWL)
-        true_left, true_right = flume_rig(spec)
-        board = BoardSpec.parse(BOARD)
-
-        step(f"rendering 8 stereo pairs of a {board} board and one lying on the floor")
-        poses = board_poses((true_left, true_right), board, 8, seed=1, max_tilt_deg=40.0)
-        calib = out / "calibration"
-        left_imgs, right_imgs = [], []
-        for k, pose in enumerate(poses):
-            for side, cam, store in (("L", true_left, left_imgs), ("R", true_right, right_imgs)):
-                image = render_board(cam, board, pose, seed=2 * k + (side == "R"))
-                write_image(calib / f"view{k:02d}_{side}.png", image)
-                store.append(image)
-        origin_pose = Pose(jnp.diag(jnp.array([1.0, -1.0, -1.0])), jnp.zeros(3))
-        origin = [render_board(c, board, origin_pose, seed=90 + i) for i, c in enumerate((true_left, true_right))]
-        for side, image in zip("LR", origin):
-            write_image(calib / f"origin_{side}.png", image)
-
-        step("calibrating (OpenCV detection; intrinsics, stereo pose and the floor board's frame in one adjustment)")
-        origin_det = (detect_board(origin[0], board), detect_board(origin[1], board))
-        stereo = calibrate_stereo(detect_all(left_imgs, board), detect_all(right_imgs, board), board, SIZE,
-                                  origin=origin_det)
-        rig, frame = world_frame_rig(stereo, board, *origin_det)
-        rig = Rig(rig.left, rig.right, None, {"rms_stereo_px": stereo.rms_px, "world_frame": frame,
-                                              "focal_std_rel": stereo.focal_std_rel})
-        save_rig(rig, out / "rig.json")
-        plot_calibration_errors(stereo, out / "calibration_errors.png")
-        summary["calibration"] = {
-            "rms_left_px": stereo.left.rms_px, "rms_right_px": stereo.right.rms_px, "rms_stereo_px": stereo.rms_px,
-            "baseline_m": stereo.baseline_m, "baseline_true_m": spec.baseline_m,
-            "focal_px": float(stereo.left.K[0, 0]), "focal_true_px": spec.focal_px,
-            "camera_height_m": float(rig.left.center[2]), "camera_height_true_m": float(true_left.center[2]),
-        }
-
-        water = Interface(SWL)
-        stages = []
-        for name, damage in STAGES:
-            step(f"rendering stage {name} of the breakwater under {SWL} m of water")
-            scene_spec = Breakwater(seed=7, damage=damage)
-            scene = build_scene(scene_spec)
-            images = [jpeg(render_view(c, scene.heightfield, water).image) for c in (true_left, true_right)]
-            for side, image in zip("LR", images):
-                write_image(out / "pairs" / f"stage{name}_{side}.png", image)
-            write_text_atomic(out / "pairs" / f"stage{name}_scene.json", scene_to_json(scene_spec) + "\n")
-            stages.append((name, scene_spec, images))
-
-        step(f"refining the water level from the stage I pair (gauge reading {GAUGE} m), floor as control")
-        bw = stages[0][1]
-        pl, pr = dense_correspondences(*stages[0][2], rig, GAUGE, 2000)
-        refined = refine_rig(rig, pl, pr, GAUGE, refine=("water",), control="floor",
-                             floor_region=(-0.75, bw.toe_x_m - 2 * bw.dn50_m))
-        level, level_std = refined.parameters["water level (m)"]
-        save_rig(refined.rig, out / "rig_wet.json")
-        summary["refine"] = {"water_level_m": level, "std_m": level_std, "true_m": SWL, "gauge_m": GAUGE,
-                             "std_fit_m": refined.level_std_fit_m, "std_frame_m": refined.level_std_frame_m,
-                             "control_terms": refined.n_control,
-                             "determined": refined.level_determined, "rms_before_px": refined.rms_before_px,
-                             "rms_after_px": refined.rms_after_px, "correspondences": refined.n_correspondences}
-
-        dems = []
-        summary["surveys"] = {}
-        for name, _, images in stages:
-            step(f"reconstructing stage {name} (exact refraction)")
-            survey, info = reconstruct(images[0], images[1], refined.rig, None,
-                                       ReconstructOptions(z_range_m=(-0.05, 0.45)))
-            save_survey(survey, out / "surveys" / f"stage{name}.npz")
-            plot_survey_preview(survey, SIZE, out / f"survey_stage{name}.png", f"stage {name}: {len(survey)} points")
-            summary["surveys"][name] = {"points": len(survey), "submerged_fraction": info["submerged_fraction"],
-                                        "seconds": info["seconds"]}
-            x = dems[0].x if dems else None
-            y = dems[0].y if dems else None
-            dem = fill_holes(grid_median(survey.points, 0.005, x, y), 0.01)
-            save_dem(dem, out / "surveys" / f"stage{name}_dem.npz")
-            dems.append(dem)
-
-        step("damage of stages II and III against stage I")
-        summary["damage"] = {}
-        for (name, scene_spec, _), dem in zip(stages[1:], dems[1:]):
-            result = stretch_damage(dems[0], dem, scene_spec.dn50_m, scene_spec.slope, SWL,
-                                    origin=(scene_spec.toe_x_m, 0.0), stretch=TESTED_STRETCH)
-            write_damage_report(result, dems[0], dem, out / f"damage_stage{name}")
-            summary["damage"][name] = result.to_dict()
-            summary["damage"][name].pop("profiles")
-        _plot_damage_vs_stage(summary["damage"], out / "damage_vs_stage.png")
-        plot_incidence_report(incidence_report(), out / "incidence.png")
+    spec = realistic_rig_spec(image_size=SIZE, water_level_m=SWL)
+    true_rig = flume_rig(spec)
+    rig, summary["calibration"] = _calibrate(out, spec, true_rig, step)
+    stages = _render_stages(out, true_rig, step)
+    step(f"refining the water level from the stage I pair (gauge reading {GAUGE} m), floor as control")
+    refined, summary["refine"] = _refine(out, rig, stages[0])
+    dems, summary["surveys"] = _survey_stages(out, refined.rig, stages, step)
+    step("damage of stages II and III against stage I")
+    summary["damage"] = _damage(out, stages, dems)
+    _plot_damage_vs_stage(summary["damage"], out / "damage_vs_stage.png")
+    plot_incidence_report(incidence_report(), out / "incidence.png")
     summary["seconds"] = time.perf_counter() - started
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2, default=float) + "\n")
     write_text_atomic(out / "report.md", _report_markdown(summary))
     step(f"done: {out / 'report.md'}")
+    return summary
+
+
+def _calibrate(out: Path, spec, true_rig, step) -> tuple[Rig, dict]:
+    """Render the board photographs, calibrate from them; the rig (no water yet) and its summary."""
+    true_left, true_right = true_rig
+    board = BoardSpec.parse(BOARD)
+    step(f"rendering 8 stereo pairs of a {board} board and one lying on the floor")
+    poses = board_poses((true_left, true_right), board, 8, seed=1, max_tilt_deg=40.0)
+    calib = out / "calibration"
+    left_imgs, right_imgs = [], []
+    for k, pose in enumerate(poses):
+        for side, cam, store in (("L", true_left, left_imgs), ("R", true_right, right_imgs)):
+            image = render_board(cam, board, pose, seed=2 * k + (side == "R"))
+            write_image(calib / f"view{k:02d}_{side}.png", image)
+            store.append(image)
+    origin_pose = Pose(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
+    origin = [render_board(c, board, origin_pose, seed=90 + i) for i, c in enumerate((true_left, true_right))]
+    for side, image in zip("LR", origin):
+        write_image(calib / f"origin_{side}.png", image)
+
+    step("calibrating (OpenCV detection; intrinsics, stereo pose and the floor board's frame in one adjustment)")
+    origin_det = (detect_board(origin[0], board), detect_board(origin[1], board))
+    stereo = calibrate_stereo(detect_all(left_imgs, board), detect_all(right_imgs, board), board, SIZE,
+                              origin=origin_det)
+    rig, frame = world_frame_rig(stereo, board, *origin_det)
+    rig = Rig(rig.left, rig.right, None, {"rms_stereo_px": stereo.rms_px, "world_frame": frame,
+                                          "focal_std_rel": stereo.focal_std_rel})
+    save_rig(rig, out / "rig.json")
+    plot_calibration_errors(stereo, out / "calibration_errors.png")
+    return rig, {
+        "rms_left_px": stereo.left.rms_px, "rms_right_px": stereo.right.rms_px, "rms_stereo_px": stereo.rms_px,
+        "baseline_m": stereo.baseline_m, "baseline_true_m": spec.baseline_m,
+        "focal_px": float(stereo.left.K[0, 0]), "focal_true_px": spec.focal_px,
+        "camera_height_m": float(rig.left.center[2]), "camera_height_true_m": float(true_left.center[2]),
+    }
+
+
+def _render_stages(out: Path, true_rig, step) -> list:
+    """Render (JPEG) and write the three stages' wet pairs; `[(name, Breakwater spec, (left, right))]`."""
+    water = Interface(SWL)
+    stages = []
+    for name, damage in STAGES:
+        step(f"rendering stage {name} of the breakwater under {SWL} m of water")
+        scene_spec = Breakwater(seed=7, damage=damage)
+        scene = build_scene(scene_spec)
+        images = [jpeg(render_view(c, scene.heightfield, water).image) for c in true_rig]
+        for side, image in zip("LR", images):
+            write_image(out / "pairs" / f"stage{name}_{side}.png", image)
+        write_text_atomic(out / "pairs" / f"stage{name}_scene.json", scene_to_json(scene_spec) + "\n")
+        stages.append((name, scene_spec, images))
+    return stages
+
+
+def _refine(out: Path, rig: Rig, stage) -> tuple:
+    """The water level from the first stage's pair, the floor in front of the toe as control."""
+    _, bw, images = stage
+    pl, pr = dense_correspondences(*images, rig, GAUGE, 2000)
+    refined = refine_rig(rig, pl, pr, GAUGE, refine=("water",), control="floor",
+                         floor_region=(-0.75, bw.toe_x_m - 2 * bw.dn50_m))
+    level, level_std = refined.parameters["water level (m)"]
+    save_rig(refined.rig, out / "rig_wet.json")
+    return refined, {"water_level_m": level, "std_m": level_std, "true_m": SWL, "gauge_m": GAUGE,
+                     "std_fit_m": refined.level_std_fit_m, "std_frame_m": refined.level_std_frame_m,
+                     "control_terms": refined.n_control,
+                     "determined": refined.level_determined, "rms_before_px": refined.rms_before_px,
+                     "rms_after_px": refined.rms_after_px, "correspondences": refined.n_correspondences}
+
+
+def _survey_stages(out: Path, rig: Rig, stages, step) -> tuple[list, dict]:
+    """Reconstruct and grid every stage on the first stage's grid; the DEMs and a summary per stage."""
+    dems, summary = [], {}
+    for name, _, images in stages:
+        step(f"reconstructing stage {name} (exact refraction)")
+        survey, info = reconstruct(images[0], images[1], rig, None, ReconstructOptions(z_range_m=(-0.05, 0.45)))
+        save_survey(survey, out / "surveys" / f"stage{name}.npz")
+        plot_survey_preview(survey, SIZE, out / f"survey_stage{name}.png", f"stage {name}: {len(survey)} points")
+        summary[name] = {"points": len(survey), "submerged_fraction": info["submerged_fraction"],
+                         "seconds": info["seconds"]}
+        x = dems[0].x if dems else None
+        y = dems[0].y if dems else None
+        dem = fill_holes(grid_median(survey.points, 0.005, x, y), 0.01)
+        save_dem(dem, out / "surveys" / f"stage{name}_dem.npz")
+        dems.append(dem)
+    return dems, summary
+
+
+def _damage(out: Path, stages, dems) -> dict:
+    """Damage of each later stage against the first over the tested stretch; reports written, summaries returned."""
+    summary = {}
+    for (name, scene_spec, _), dem in zip(stages[1:], dems[1:]):
+        result = stretch_damage(dems[0], dem, scene_spec.dn50_m, scene_spec.slope, SWL,
+                                origin=(scene_spec.toe_x_m, 0.0), stretch=TESTED_STRETCH)
+        write_damage_report(result, dems[0], dem, out / f"damage_stage{name}")
+        summary[name] = result.to_dict()
+        summary[name].pop("profiles")
     return summary
 
 

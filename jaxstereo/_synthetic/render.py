@@ -185,6 +185,25 @@ def render_view(
     if interface is not None:
         check_camera_above(camera.center, interface)
     w, h = camera.image_size
+    colour, points, hit, submerged = _trace_pixels(camera, heightfield, interface, options, progress)
+    rng = np.random.default_rng(options.seed)
+    srgb = np.clip(colour, 0.0, 1.0) ** (1 / 2.2) * 255.0
+    if options.noise_dn > 0:
+        srgb = srgb + rng.normal(0.0, options.noise_dn, srgb.shape)
+    image = np.clip(np.round(srgb), 0, 255).astype(np.uint8).reshape(h, w, 3)
+    points = points.reshape(h, w, 3)
+    pc = points @ np.asarray(camera.pose.R).T + np.asarray(camera.pose.t)
+    return RenderedView(image=image, points=points, depth=pc[..., 2], hit=hit.reshape(h, w),
+                        submerged=submerged.reshape(h, w))
+
+
+def _trace_pixels(camera: Camera, hf: Heightfield, interface, options: RenderOptions, progress: bool):
+    """Trace every pixel in fixed-size chunks (one compilation), `supersample`^2 rays each.
+
+    **Returns:** per pixel (row-major, w * h): linear colour (n, 3) averaged over the sub-rays, and the
+    centre ray's surface point (n, 3) world metres (NaN where it hit nothing), hit and submerged flags (n,).
+    """
+    w, h = camera.image_size
     ss = options.supersample
     offsets = (np.arange(ss) + 0.5) / ss - 0.5
     ox, oy = np.meshgrid(offsets, offsets)
@@ -194,9 +213,7 @@ def render_view(
     chunk_pixels = max(1, options.chunk // (ss * ss))
     light = np.asarray(options.light, dtype=np.float64)
     light = jnp.asarray(light / np.linalg.norm(light))
-    hf = heightfield
     step_fn = _render_chunk_fn(ss, options.fine_step_m, options.max_steps, float(options.ambient))
-
     colour = np.zeros((n_pix, 3), np.float64)
     points = np.full((n_pix, 3), np.nan)
     hit = np.zeros(n_pix, bool)
@@ -207,33 +224,20 @@ def render_view(
     n_chunks = -(-n_pix // chunk_pixels)
     for k, start in enumerate(range(0, n_pix, chunk_pixels)):
         stop = min(start + chunk_pixels, n_pix)
-        pu = np.zeros(chunk_pixels)
-        pv = np.zeros(chunk_pixels)
-        pu[: stop - start] = flat_u[start:stop]
-        pv[: stop - start] = flat_v[start:stop]
-        pix = np.stack([pu, pv], axis=-1)[:, None, :] + sub[None, :, :]
-        c, p, ht, sm = step_fn(camera, hf, interface, jnp.asarray(pix.reshape(-1, 2)), light)
-        c = np.asarray(c).reshape(chunk_pixels, ss * ss, 3).mean(axis=1)
-        p = np.asarray(p).reshape(chunk_pixels, ss * ss, 3)[:, centre]
-        ht = np.asarray(ht).reshape(chunk_pixels, ss * ss)[:, centre]
-        sm = np.asarray(sm).reshape(chunk_pixels, ss * ss)[:, centre]
         m = stop - start
-        colour[start:stop] = c[:m]
-        points[start:stop] = np.where(ht[:m, None], p[:m], np.nan)
-        hit[start:stop] = ht[:m]
-        submerged[start:stop] = sm[:m]
+        pix = np.zeros((chunk_pixels, 2))
+        pix[:m] = np.stack([flat_u[start:stop], flat_v[start:stop]], axis=-1)
+        rays = (pix[:, None, :] + sub[None, :, :]).reshape(-1, 2)
+        c, p, ht, sm = step_fn(camera, hf, interface, jnp.asarray(rays), light)
+        colour[start:stop] = np.asarray(c).reshape(chunk_pixels, ss * ss, 3).mean(axis=1)[:m]
+        ht = np.asarray(ht).reshape(chunk_pixels, ss * ss)[:m, centre]
+        p = np.asarray(p).reshape(chunk_pixels, ss * ss, 3)[:m, centre]
+        points[start:stop] = np.where(ht[:, None], p, np.nan)
+        hit[start:stop] = ht
+        submerged[start:stop] = np.asarray(sm).reshape(chunk_pixels, ss * ss)[:m, centre]
         if progress and (k + 1) % max(1, n_chunks // 10) == 0:
             log.info("render %dx%d: %d%% (%.1f s)", w, h, 100 * stop // n_pix, time.perf_counter() - started)
-
-    rng = np.random.default_rng(options.seed)
-    srgb = np.clip(colour, 0.0, 1.0) ** (1 / 2.2) * 255.0
-    if options.noise_dn > 0:
-        srgb = srgb + rng.normal(0.0, options.noise_dn, srgb.shape)
-    image = np.clip(np.round(srgb), 0, 255).astype(np.uint8).reshape(h, w, 3)
-    points = points.reshape(h, w, 3)
-    pc = points @ np.asarray(camera.pose.R).T + np.asarray(camera.pose.t)
-    return RenderedView(image=image, points=points, depth=pc[..., 2], hit=hit.reshape(h, w),
-                        submerged=submerged.reshape(h, w))
+    return colour, points, hit, submerged
 
 
 _CHUNK_FNS: dict = {}
