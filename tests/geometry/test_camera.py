@@ -61,7 +61,10 @@ def test_undistort_matches_opencv(rng):
     camera = js.Camera.from_opencv(K, dist, rvec, tvec, (1280, 960))
     pixels = rng.uniform([0, 0], [1280, 960], (300, 2))
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
-    ref = cv2.undistortPointsIter(pixels[:, None, :], K, dist, None, K, criteria)[:, 0, :]
+    if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4; OpenCV 5 folded it into undistortPoints
+        ref = cv2.undistortPointsIter(pixels[:, None, :], K, dist, None, K, criteria)[:, 0, :]
+    else:
+        ref = cv2.undistortPoints(pixels[:, None, :], K, dist, None, None, K, criteria)[:, 0, :]
     got = camera.undistort_pixels(jnp.asarray(pixels))
     np.testing.assert_allclose(got, ref, atol=1e-6, rtol=0)
     np.testing.assert_allclose(camera.distort_pixels(got), pixels, atol=1e-9, rtol=0)
