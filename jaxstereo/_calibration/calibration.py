@@ -6,6 +6,7 @@ import dataclasses
 import logging
 
 import cv2
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -251,7 +252,8 @@ def world_frame_rig(
     it lowers that RMS.
 
     **Returns:** `(rig, report)`; the report says where the pose came from and has the origin board's RMS
-    (pixels).
+    (pixels) and, with both origin images, the frame's covariance (`frame_cov`, see `_frame_covariance`);
+    the rig's `calibration` holds it under "world_frame", beside the focal length's relative std.
     """
     obj = board.corners[origin_left.ids]
     joint = stereo.origin_rvec is not None
@@ -289,8 +291,38 @@ def world_frame_rig(
             if after < before:
                 left, right = new_left, new_right
                 report["origin_rms_px_after"] = after
-    rig = Rig(left, right, None, {})
+        report.update(_frame_covariance(left, right, world_obj, origin_left.pixels, world_obj_r, origin_right.pixels))
+    provenance = {"world_frame": report}
+    if np.isfinite(stereo.focal_std_rel):
+        provenance["focal_std_rel"] = stereo.focal_std_rel
+    rig = Rig(left, right, None, provenance)
     return rig, report
+
+
+def _frame_covariance(left: Camera, right: Camera, obj_l, px_l, obj_r, px_r) -> dict:
+    """How well the origin board fixes the world frame: the covariance (6, 6) of a small move of the frame,
+    `X -> X + w x X + v` (w radians, v metres, world axes), from the board corners' reprojection in both
+    images with the cameras' calibration held, the pixel noise estimated from the residuals themselves.
+
+    **Returns:** `{"frame_cov": 6x6 list, "frame_tilt_std_mrad": [about x, about y], "frame_height_std_m":
+    at the origin, "frame_noise_px"}` for the rig's provenance; `refine` turns it into the floor's height
+    uncertainty where its control points lie.
+    """
+    obj = jnp.asarray(np.concatenate([obj_l, obj_r]))
+    seen = jnp.asarray(np.concatenate([px_l, px_r]))
+    n_left = len(obj_l)
+
+    def residuals(p):
+        moved = obj + jnp.cross(p[:3], obj) + p[3:]
+        projected = jnp.concatenate([left.project(moved[:n_left]), right.project(moved[n_left:])])
+        return (projected - seen).ravel()
+
+    r0 = np.asarray(residuals(jnp.zeros(6)))
+    J = np.asarray(jax.jacfwd(residuals)(jnp.zeros(6)))
+    noise = float(np.sqrt(np.sum(r0**2) / max(r0.size - 6, 1)))
+    cov = noise**2 * np.linalg.inv(J.T @ J)
+    return {"frame_cov": cov.tolist(), "frame_tilt_std_mrad": [1e3 * float(np.sqrt(cov[k, k])) for k in (0, 1)],
+            "frame_height_std_m": float(np.sqrt(cov[5, 5])), "frame_noise_px": noise}
 
 
 def _origin_rms(left, right, obj_l, px_l, obj_r, px_r) -> float:

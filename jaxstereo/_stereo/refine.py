@@ -415,6 +415,26 @@ def scale_level_std(rig: Rig, level: float) -> float:
     return rel * max(height, 0.0)
 
 
+def floor_level_std(rig: Rig, interface: Interface, floor_xy: np.ndarray) -> float:
+    """The world frame's share of a level fixed by the floor (m): the floor's height error where its control
+    points lie (world xy (k, 2), metres), from the frame's covariance that calibration recorded
+    (`calibration["world_frame"]["frame_cov"]`: the origin board's tilt and height), divided by `n - 1`.
+
+    With the floor as control the level is what puts the floor at z = 0; a floor that truly sits `e` higher
+    there moves the level, as measured from the cameras, by `e / (n - 1)` (3 e in water). 0 when the rig
+    has no such record or there are no floor points.
+    """
+    frame = rig.calibration.get("world_frame") if isinstance(rig.calibration, dict) else None
+    if not isinstance(frame, dict) or "frame_cov" not in frame or len(floor_xy) == 0:
+        return 0.0
+    cov = np.asarray(frame["frame_cov"], dtype=np.float64)
+    x, y = np.mean(np.asarray(floor_xy, dtype=np.float64), axis=0)
+    gradient = np.array([y, -x, 0.0, 0.0, 0.0, 1.0])  # d z / d (w, v) of the moved frame at (x, y, 0)
+    floor_std = float(np.sqrt(max(gradient @ cov @ gradient, 0.0)))
+    n = float(interface.n_water) / float(interface.n_air)
+    return floor_std / (n - 1.0)
+
+
 @float64
 def refine_rig(
     rig: Rig, left_pixels: np.ndarray, right_pixels: np.ndarray, level_guess: float,
@@ -476,7 +496,11 @@ def refine_rig(
     std = _standard_deviations(theta, problem, groups)
     right, interface = model.unpack(theta)
     std = np.maximum(std, _block_jackknife_std(theta, problem, pl, rig.image_size))
-    frame_std = scale_level_std(rig, float(interface.level)) if "water" in which else 0.0
+    frame_std = 0.0
+    if "water" in which:
+        floor_xy = points0[np.asarray(mask)[: len(points0)], :2] if isinstance(control, str) else np.zeros((0, 2))
+        frame_std = float(np.hypot(scale_level_std(rig, float(interface.level)),
+                                   floor_level_std(rig, interface, floor_xy)))
     right, interface, params = _parameters(model, which, theta, std, frame_std)
     level_std = params.get("water level (m)", (0.0, 0.0))[1]
     converged = all(o == "converged" for o in outcomes)

@@ -89,6 +89,14 @@ def test_synthetic_calibration_recovers_the_rig(board_text, n_views):
         angle = np.linalg.norm(np.asarray(js.so3_log(np.asarray(cam.pose.R) @ np.asarray(true_cam.pose.R).T)))
         assert angle < 5e-3
     assert report["origin_rms_px_after"] <= report["origin_rms_px_before"] + 1e-9
+    # The frame's recorded tilt uncertainty covers its tilt error: the angle between the calibrated and the
+    # true vertical, seen from the left camera.
+    z_cal = np.asarray(rig.left.pose.R)[:, 2]
+    z_true = np.asarray(truth[0].pose.R)[:, 2]
+    tilt_error = float(np.arccos(np.clip(z_cal @ z_true, -1.0, 1.0)))
+    tilt_std = 1e-3 * float(np.hypot(*report["frame_tilt_std_mrad"]))
+    print(f"frame tilt error {1e3 * tilt_error:.3f} mrad, recorded std {1e3 * tilt_std:.3f} mrad")
+    assert tilt_error <= 3 * tilt_std
 
 
 def test_board_spec_parse_errors():

@@ -244,3 +244,19 @@ def test_level_uncertainty_covers_its_error_over_20_trials(flume):
     z = np.asarray(z)
     assert np.mean(z <= 2) >= 0.9, z  # measured: 95 %
     assert np.mean(z <= 0.5) <= 0.7, z  # measured: 40 %
+
+
+def test_floor_level_std_is_the_floor_height_error_of_a_tilted_frame_over_n_minus_1(flume):
+    """A frame known to +/- 1 mrad about y and 0.2 mm in height: the floor 0.6 m from the origin is known to
+    hypot(0.6 mm, 0.2 mm); with the floor as control the level takes that over n - 1."""
+    from jaxstereo._stereo.refine import floor_level_std
+
+    _, _, left, right = flume
+    cov = np.diag([1e-12, 1e-6, 1e-12, 1e-12, 1e-12, 0.2e-3**2])
+    rig = Rig(left, right, None, {"world_frame": {"frame_cov": cov.tolist()}})
+    water = js.Interface(LEVEL)
+    floor_xy = np.column_stack([np.full(50, -0.6), np.linspace(-0.1, 0.1, 50)])
+    expected = np.hypot(0.6e-3, 0.2e-3) / (1.333 - 1.0)
+    assert floor_level_std(rig, water, floor_xy) == pytest.approx(expected, rel=1e-3)
+    assert floor_level_std(Rig(left, right), water, floor_xy) == 0.0  # no record: no term
+    assert floor_level_std(rig, water, np.zeros((0, 2))) == 0.0
