@@ -17,6 +17,7 @@ from .._geometry.pose import Pose
 from .._geometry.precision import float64
 from .boards import BoardSpec
 from .detect import Detection, detect_board
+from .pose_covariance import right_pose_covariance
 from .rig import Rig
 
 log = logging.getLogger("jaxstereo")
@@ -50,7 +51,8 @@ class StereoCalibration:
     `pair_rms_px` (n_pairs,) per pair used; `pairs` indices of the pairs used; `missing` indices of the
     pairs where the board was not found in one or both images; `origin_rvec`, `origin_tvec` the pose
     (board -> left camera, Rodrigues vector and metres) of the origin board when it was part of the
-    joint adjustment, else None; `distortion_model` the distortion terms estimated.
+    joint adjustment, else None; `distortion_model` the distortion terms estimated; `right_pose_cov`
+    (6, 6) the right camera's pose covariance in the left camera's frame (see `right_pose_covariance`).
     """
 
     left: CameraCalibration
@@ -65,6 +67,7 @@ class StereoCalibration:
     origin_rvec: np.ndarray | None = None
     origin_tvec: np.ndarray | None = None
     distortion_model: str = "k1,k2"
+    right_pose_cov: np.ndarray | None = None
 
     @property
     def baseline_m(self) -> float:
@@ -190,12 +193,13 @@ def calibrate_stereo(
     )
     left = dataclasses.replace(left, K=Kl, dist=dl_.ravel()[:5].copy())
     right = dataclasses.replace(right, K=Kr, dist=dr_.ravel()[:5].copy())
+    pose_cov = right_pose_covariance(Kl, dl_, Kr, dr_, R, T, image_size, obj, img_l, img_r, rvecs, tvecs)
     pair_rms = np.sqrt(np.mean(np.asarray(per_view) ** 2, axis=1))
     origin_pose = (np.asarray(rvecs[-1]).ravel(), np.asarray(tvecs[-1]).ravel()) if origin is not None else (None, None)
     if origin is not None:
         pair_rms = pair_rms[:-1]
     return StereoCalibration(left, right, R, T.ravel(), float(rms), pair_rms, pairs, missing, image_size,
-                             *origin_pose, "k1,k2,p1,p2,k3" if fuller else "k1,k2")
+                             *origin_pose, "k1,k2,p1,p2,k3" if fuller else "k1,k2", pose_cov)
 
 
 def _add_pair(board, dl: Detection, dr: Detection, obj, img_l, img_r) -> bool:
@@ -292,6 +296,10 @@ def world_frame_rig(
                 left, right = new_left, new_right
                 report["origin_rms_px_after"] = after
         report.update(_frame_covariance(left, right, world_obj, origin_left.pixels, world_obj_r, origin_right.pixels))
+    if stereo.right_pose_cov is not None and np.all(np.isfinite(stereo.right_pose_cov)):
+        # Rotation vectors and centre shifts in the left camera's frame -> world axes (x_cam = R_bc x_world).
+        Q = np.kron(np.eye(2), np.asarray(left.pose.R).T)
+        report["right_pose_cov"] = (Q @ stereo.right_pose_cov @ Q.T).tolist()
     provenance = {"world_frame": report}
     if np.isfinite(stereo.focal_std_rel):
         provenance["focal_std_rel"] = stereo.focal_std_rel

@@ -72,6 +72,7 @@ class _Model(eqx.Module):
     n_air: jax.Array
     n_water: jax.Array
     across: jax.Array  # (2, 3) unit vectors perpendicular to the baseline
+    prior: jax.Array  # (5, 5) whitening of the right pose's calibration covariance (zeros: no prior)
     which: tuple[str, ...] = eqx.field(static=True)
 
     def unpack(self, theta):
@@ -94,6 +95,13 @@ class _Model(eqx.Module):
         right = self.right.with_pose(self.right.pose.retract(pose))
         return right, interface
 
+    def prior_residuals(self, theta):
+        """The right pose's move in standard deviations of its calibration (5,): zeros without a prior."""
+        if "right-pose" not in self.which:
+            return jnp.zeros(5, theta.dtype)
+        k = ("water" in self.which) + 2 * ("tilt" in self.which)
+        return self.prior @ (theta[k : k + 5] * 1e-3)
+
     @property
     def size(self) -> int:
         return ("water" in self.which) + 2 * ("tilt" in self.which) + 5 * ("right-pose" in self.which)
@@ -112,10 +120,28 @@ def _build_model(rig: Rig, level_guess: float, which: tuple[str, ...]) -> tuple[
     if np.linalg.norm(e1) < 1e-6:
         e1 = np.cross(baseline, [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1)
-    across = jnp.asarray(np.stack([e1, np.cross(baseline, e1)]))
+    across = np.stack([e1, np.cross(baseline, e1)])
     model = _Model(rig.left, rig.right, jnp.asarray(float(level_guess)), tilt0, jnp.asarray(n_air),
-                   jnp.asarray(n_water), across, which)
+                   jnp.asarray(n_water), jnp.asarray(across), jnp.asarray(_pose_prior(rig, across)), which)
     return model, Interface(float(level_guess), normal, n_air, n_water)
+
+
+def _pose_prior(rig: Rig, across: np.ndarray) -> np.ndarray:
+    """Whitening (5, 5) of the right pose's covariance from calibration (`world_frame.right_pose_cov`, world
+    axes, `Pose.retract`'s convention), in the refined parameters: three rotations (rad) and the centre's
+    two shifts across the baseline (m). Zeros when the rig has no such record.
+    """
+    frame = rig.calibration.get("world_frame") if isinstance(rig.calibration, dict) else None
+    cov = np.asarray(frame.get("right_pose_cov", np.zeros((0, 0))), dtype=np.float64) if isinstance(frame, dict) else None
+    if cov is None or cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+        return np.zeros((5, 5))
+    M = np.zeros((5, 6))
+    M[:3, :3] = np.eye(3)
+    M[3:, 3:] = across
+    try:
+        return np.linalg.inv(np.linalg.cholesky(M @ cov @ M.T))
+    except np.linalg.LinAlgError:
+        return np.zeros((5, 5))
 
 
 def _triangulate_any(left: Camera, right: Camera, interface: Interface, pl, pr):
@@ -144,7 +170,7 @@ def _residuals(theta, args):
     reproj = jnp.concatenate([(ql - pl).ravel(), (qr - pr).ravel()])
     control = jnp.where(control_mask, points[:, 2] - control_z, 0.0)
     gcp = _triangulate_any(model.left, right, interface, gcp_l, gcp_r) - gcp_xyz
-    return jnp.concatenate([reproj, control, gcp.ravel()])
+    return jnp.concatenate([reproj, control, gcp.ravel(), model.prior_residuals(theta)])
 
 
 _RESULT_WORDS = (("successful", "converged"), ("nonlinear_max_steps_reached", "stopped at its step limit"),
@@ -211,6 +237,7 @@ def _check_which(refine) -> tuple[str, ...]:
 
 
 _SOLVER = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
+N_PRIOR = 5  # residuals of the right pose's calibration prior, last in the residual vector
 _NO_GCP = (np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)))
 
 
@@ -295,7 +322,7 @@ class _Data:
         live = np.arange(size) < n
         pixel = np.where(live, 1.0 / self.pixel_sigma, 0.0)
         weights = np.concatenate([np.tile(pixel, 4), np.full(size, 1.0 / surface_sigma),
-                                  np.full(3 * k, 1.0 / self.control_sigma_m)])
+                                  np.full(3 * k, 1.0 / self.control_sigma_m), np.ones(N_PRIOR)])
         args = (self.model, jnp.asarray(_pad(self.pl, size)), jnp.asarray(_pad(self.pr, size)),
                 jnp.asarray(np.pad(mask, (0, size - n))), jnp.asarray(np.pad(heights, (0, size - n))),
                 *(jnp.asarray(g) for g in self.gcp))
@@ -342,6 +369,7 @@ def _standard_deviations(theta, problem, groups):
     J = np.asarray(_jacobian(theta, problem))
     r = np.asarray(_objective_jit(theta, problem))
     scaled = np.zeros_like(J)
+    scaled[-N_PRIOR:] = J[-N_PRIOR:]  # the pose prior is in standard deviations already
     for rows in groups:
         if rows.size:
             scaled[rows] = J[rows] / np.sqrt(max(float(r[rows] @ r[rows]) / rows.size, 1e-300))
@@ -583,7 +611,8 @@ def refine_problem(rig: Rig, left_pixels, right_pixels, level_guess: float, refi
     mask = jnp.zeros(pl.shape[0], bool) if floor_mask is None else jnp.asarray(floor_mask)
     heights = jnp.zeros(pl.shape[0]) if control_z is None else jnp.asarray(np.asarray(control_z, dtype=np.float64))
     args = (model, pl, pr, mask, heights, jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros((0, 3)))
-    weights = jnp.concatenate([jnp.full(4 * pl.shape[0], 1.0 / 0.3), jnp.full(pl.shape[0], 1.0 / floor_sigma_m)])
+    weights = jnp.concatenate([jnp.full(4 * pl.shape[0], 1.0 / 0.3), jnp.full(pl.shape[0], 1.0 / floor_sigma_m),
+                               jnp.ones(N_PRIOR)])
 
     @float64
     def fn(theta, a):

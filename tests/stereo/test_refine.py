@@ -260,3 +260,27 @@ def test_floor_level_std_is_the_floor_height_error_of_a_tilted_frame_over_n_minu
     assert floor_level_std(rig, water, floor_xy) == pytest.approx(expected, rel=1e-3)
     assert floor_level_std(Rig(left, right), water, floor_xy) == 0.0  # no record: no term
     assert floor_level_std(rig, water, np.zeros((0, 2))) == 0.0
+
+
+def test_a_calibrated_pose_prior_holds_the_pose_yet_lets_a_real_move_through(flume):
+    """With the calibration's right-pose covariance in the rig (0.0003 deg, 0.01 mm, as on the POV-Ray flume)
+    the pose stays within a few of its standard deviations when it did not move, and a camera bumped by
+    0.2 deg and 2 mm still comes back: the prior is robust (Cauchy), not a constraint."""
+    spec, scene, left, right = flume
+    cov = np.diag([np.deg2rad(3e-4) ** 2] * 3 + [1e-5**2] * 3)
+    provenance = {"world_frame": {"right_pose_cov": cov.tolist()}}
+    wet = build_scene(dataclasses.replace(spec, damage=Damage(half_length_dn50=3.0, half_width_dn50=4.0, swl_m=LEVEL)))
+    pl, pr, _ = surface_correspondences(wet.heightfield, left, right, js.Interface(LEVEL), 1500, 0.1)
+    held = refine_rig(Rig(left, right, None, provenance), pl, pr, LEVEL + 0.05, refine=("water", "right-pose"),
+                      control=_dry_dem(scene))
+    angle = np.rad2deg(np.linalg.norm(np.asarray(js.so3_log(np.asarray(held.rig.right.pose.R) @ np.asarray(right.pose.R).T))))
+    assert angle <= 5 * 3e-4 * np.sqrt(3)
+    level, std = held.parameters["water level (m)"]
+    assert abs(level - LEVEL) <= 2 * std and held.level_determined
+    perturb = np.array([np.deg2rad(0.2) / np.sqrt(3)] * 3 + [0.0, 0.002 / np.sqrt(2), 0.002 / np.sqrt(2)])
+    moved = right.with_pose(right.pose.retract(perturb))
+    back = refine_rig(Rig(left, moved, None, provenance), pl, pr, LEVEL + 0.05, refine=("water", "right-pose"),
+                      control=_dry_dem(scene))
+    angle = np.rad2deg(np.linalg.norm(np.asarray(js.so3_log(np.asarray(back.rig.right.pose.R) @ np.asarray(right.pose.R).T))))
+    assert angle <= 0.02
+    assert np.linalg.norm(np.asarray(back.rig.right.center) - np.asarray(right.center)) <= 5e-4
