@@ -178,7 +178,13 @@ def _damage_row(d, reference_dem, dem, out: Path, lap) -> dict:
     """Damage of `dem` against the test's reference DEM with the manifest's settings `d`; the report is
     written to `out/damage`; returns the summary row's damage columns."""
     from .._surface.damage import parse_slope
-    from .._surface.damage_report import ACTIVE_ZONE_DN50, _column_mean, fit_design_slope, stretch_damage, write_damage_report
+    from .._surface.damage_report import (
+        ACTIVE_ZONE_DN50,
+        _column_mean,
+        fit_design_slope,
+        stretch_damage,
+        write_damage_report,
+    )
 
     cot = parse_slope(d.slope)
     origin = d.slope_origin
