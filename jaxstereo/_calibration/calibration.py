@@ -328,7 +328,12 @@ def _frame_covariance(left: Camera, right: Camera, obj_l, px_l, obj_r, px_r) -> 
     r0 = np.asarray(residuals(jnp.zeros(6)))
     J = np.asarray(jax.jacfwd(residuals)(jnp.zeros(6)))
     noise = float(np.sqrt(np.sum(r0**2) / max(r0.size - 6, 1)))
-    cov = noise**2 * np.linalg.inv(J.T @ J)
+    try:
+        cov = noise**2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:  # too few corners to fix the frame: no record, no frame term in refine
+        return {}
+    if not np.all(np.isfinite(cov)):
+        return {}
     return {"frame_cov": cov.tolist(), "frame_tilt_std_mrad": [1e3 * float(np.sqrt(cov[k, k])) for k in (0, 1)],
             "frame_height_std_m": float(np.sqrt(cov[5, 5])), "frame_noise_px": noise}
 
