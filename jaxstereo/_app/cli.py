@@ -134,6 +134,14 @@ def _print_calibration(stereo, report: dict, rig, calibration: dict) -> None:
     ]
     if "origin_rms_px_after" in report:
         rows.append(("origin board RMS (px)", f"{report['origin_rms_px_after']:.3f}"))
+    if "frame_tilt_std_mrad" in report:
+        tilt = report["frame_tilt_std_mrad"]
+        rows.append(("world frame std: tilt (mrad), height (mm)",
+                     f"{tilt[0]:.2f} / {tilt[1]:.2f}, {1e3 * report['frame_height_std_m']:.2f}"))
+    if "right_pose_cov" in report:
+        std = np.sqrt(np.diag(np.asarray(report["right_pose_cov"])))
+        rows.append(("right pose std: rotation (deg), centre (mm)",
+                     f"{np.degrees(std[:3]).max():.5f}, {1e3 * std[3:].max():.3f}"))
     width = max(len(r[0]) for r in rows)
     for name, value in rows:
         print(f"  {name:<{width}}  {value}")
