@@ -37,7 +37,7 @@ def float64(fn: Callable) -> Callable:
             raise JaxStereoError(
                 f"{fn.__qualname__} was traced (jit, grad, vmap) with 64-bit types disabled: jaxstereo's geometry "
                 "runs in float64 only. Trace it inside `with jax.enable_x64(True):`, decorate your function with "
-                "`jaxstereo.float64`, or set jax.config.update('jax_enable_x64', True)"
+                "`jaxstereo.float64`, or turn on JAX's jax_enable_x64 option in your own program"
             )
         with jax.enable_x64(True):
             return fn(*args, **kwargs)
