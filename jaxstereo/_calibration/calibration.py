@@ -6,7 +6,6 @@ import dataclasses
 import logging
 
 import cv2
-import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -17,7 +16,7 @@ from .._geometry.pose import Pose
 from .._geometry.precision import float64
 from .boards import BoardSpec
 from .detect import Detection, detect_board
-from .pose_covariance import right_pose_covariance
+from .pose_covariance import covariance_from_residuals, right_pose_covariance
 from .rig import Rig
 
 log = logging.getLogger("jaxstereo")
@@ -325,14 +324,8 @@ def _frame_covariance(left: Camera, right: Camera, obj_l, px_l, obj_r, px_r) -> 
         projected = jnp.concatenate([left.project(moved[:n_left]), right.project(moved[n_left:])])
         return (projected - seen).ravel()
 
-    r0 = np.asarray(residuals(jnp.zeros(6)))
-    J = np.asarray(jax.jacfwd(residuals)(jnp.zeros(6)))
-    noise = float(np.sqrt(np.sum(r0**2) / max(r0.size - 6, 1)))
-    try:
-        cov = noise**2 * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:  # too few corners to fix the frame: no record, no frame term in refine
-        return {}
-    if not np.all(np.isfinite(cov)):
+    cov, noise = covariance_from_residuals(residuals, 6)
+    if not np.all(np.isfinite(cov)):  # too few corners to fix the frame: no record, no frame term in refine
         return {}
     return {"frame_cov": cov.tolist(), "frame_tilt_std_mrad": [1e3 * float(np.sqrt(cov[k, k])) for k in (0, 1)],
             "frame_height_std_m": float(np.sqrt(cov[5, 5])), "frame_noise_px": noise}

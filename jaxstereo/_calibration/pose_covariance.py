@@ -49,12 +49,22 @@ def right_pose_covariance(K_left, dist_left, K_right, dist_right, R, T, image_si
             out += [left.project(points), right.project(points)]
         return (jnp.concatenate(out) - seen).ravel()
 
-    p0 = jnp.zeros(6 + 6 * len(boards))
+    cov, _ = covariance_from_residuals(residuals, 6 + 6 * len(boards))
+    return cov[:6, :6]
+
+
+def covariance_from_residuals(residuals, n_params: int) -> tuple[np.ndarray, float]:
+    """Gauss-Newton covariance (n_params, n_params) of small parameters about zero, `residuals(p)` in pixels,
+    with the pixel noise estimated from the residuals at zero (n - n_params degrees of freedom).
+
+    **Returns:** `(cov, noise_px)`; `cov` is all inf when the parameters are not determined.
+    """
+    p0 = jnp.zeros(n_params)
     r0 = np.asarray(residuals(p0))
     J = np.asarray(jax.jacfwd(residuals)(p0))
-    noise2 = float(r0 @ r0) / max(r0.size - p0.size, 1)
-    information = J.T @ J / noise2
+    noise = float(np.sqrt(float(r0 @ r0) / max(r0.size - n_params, 1)))
     try:
-        return np.linalg.inv(information)[:6, :6]
+        cov = noise**2 * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
-        return np.full((6, 6), np.inf)
+        return np.full((n_params, n_params), np.inf), noise
+    return (cov if np.all(np.isfinite(cov)) else np.full((n_params, n_params), np.inf)), noise
