@@ -173,7 +173,8 @@ def _cmd_reconstruct(args) -> int:
     z_range = tuple(args.z_range) if args.z_range else None
     if z_range is not None and not z_range[0] < z_range[1]:
         raise JaxStereoError(f"--z-range must be ZMIN ZMAX with ZMIN < ZMAX, got {args.z_range}")
-    options = ReconstructOptions(model=args.model, z_range_m=z_range, match=MatchOptions(block_size=args.block_size))
+    options = ReconstructOptions(model=args.model, z_range_m=z_range, match=MatchOptions(block_size=args.block_size),
+                                 water_level_std_m=args.water_level_std)
     survey, summary = reconstruct(left, right, rig, args.water_level, options)
     start = time.perf_counter()
     save_survey(survey, output)
@@ -194,11 +195,24 @@ def _cmd_reconstruct(args) -> int:
     print(f"  exact curve off the rows    {summary['vertical_parallax_px_mean']:.3f} / "
           f"{summary['vertical_parallax_px_max']:.3f} px mean / max (under water; matches moved onto it)")
     print(f"  dropped                     {summary['dropped_rays_apart']} rays apart, "
-          f"{summary['dropped_outside_height_range']} outside the height range")
+          f"{summary['dropped_outside_height_range']} outside the height range, "
+          f"{summary['dropped_undetermined']} not determined (disparity std over 1 px)")
+    _print_sigma(summary)
     for stage, seconds in summary["seconds"].items():
         print(f"  {stage:<27} {seconds:.2f}")
     print(f"survey: {output}\npreview: {preview}\nsummary: {summary_path}" + (f"\nply: {args.ply}" if args.ply else ""))
     return 0
+
+
+def _print_sigma(summary: dict) -> None:
+    """The survey's median vertical std, emerged and submerged, and the part the matching alone gives."""
+    for name in ("emerged", "submerged"):
+        if f"median_sigma_z_{name}_mm" in summary:
+            print(f"  median sigma_z {name:<11} {summary[f'median_sigma_z_{name}_mm']:.2f} mm "
+                  f"({summary[f'median_sigma_z_match_{name}_mm']:.2f} mm from matching, the rest shared)")
+    missing = [k for k, found in summary.get("shared_recorded", {}).items() if not found]
+    if missing:
+        print(f"  not in the rig's record     {', '.join(missing)} (counted as exact in sigma_z)")
 
 
 def _cmd_grid(args) -> int:

@@ -109,6 +109,8 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--rig", required=True, help="rig JSON (from jaxstereo calibrate or refine)")
     p.add_argument("--water-level", type=float, help="water level, m (world Z); default: the rig's interface, "
                    "or a dry survey if it has none")
+    p.add_argument("--water-level-std", type=float, help="the water level's standard deviation, m, for the points' "
+                   "error bars (default: the one refine recorded for the rig's own level, else 0: a given level is exact)")
     p.add_argument("--model", choices=["exact", "first-order", "none"], default="exact",
                    help="refraction model for under-water points (default exact)")
     p.add_argument("--z-range", type=float, nargs=2, metavar=("ZMIN", "ZMAX"),

@@ -44,3 +44,30 @@ def layer_table_markdown(results: dict[str, list[dict]], column: str = "median_m
             cells.append(f"{match[0][column]:+.2f}" if match else "")
         lines.append(f"| {a:+.2f} to {b:+.2f} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def uncertainty_coverage(errors: np.ndarray, sigma: np.ndarray, heights: np.ndarray, layer_m: float = 0.05,
+                         z_from: float = 0.0, z_to: float = 0.30, outlier_m: float = 0.02,
+                         min_points: int = 500) -> list[dict]:
+    """How honest predicted standard deviations are, per layer of height: predicted against measured error.
+
+    **Arguments:** `errors` (N,) the points' true errors, `sigma` (N,) their predicted standard deviations
+    along the same direction, `heights` (N,) world z, all metres; layers of `layer_m` from `z_from` to
+    `z_to`; points off by more than `outlier_m` (gross mismatches, counted apart) are left out of the RMS.
+
+    **Returns:** one dict per layer with at least `min_points` points: `z_from_m`, `n`, `within_2_sigma`
+    (fraction of all points with |error| <= 2 sigma), `measured_rms_mm` and `predicted_rms_mm` (root mean
+    square of the errors and of sigma, over points within `outlier_m`), and their `ratio` (predicted / measured).
+    """
+    rows = []
+    for lo in np.arange(z_from, z_to - 1e-12, layer_m):
+        m = (heights >= lo) & (heights < lo + layer_m)
+        if m.sum() < min_points:
+            continue
+        e, s = errors[m], sigma[m]
+        inlier = np.abs(e) < outlier_m
+        measured = float(1e3 * np.sqrt(np.mean(e[inlier] ** 2)))
+        predicted = float(1e3 * np.sqrt(np.mean(s[inlier] ** 2)))
+        rows.append(dict(z_from_m=float(lo), n=int(m.sum()), within_2_sigma=float(np.mean(np.abs(e) <= 2 * s)),
+                         measured_rms_mm=measured, predicted_rms_mm=predicted, ratio=predicted / measured))
+    return rows

@@ -35,6 +35,7 @@ from .epipolar import disparity_bounds, exact_row_offset, triangulate_exact
 from .matching import MatchOptions, disparity_search_range, refine_disparity, sgbm_disparity
 from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, remap
 from .survey import Survey
+from .uncertainty import SharedErrors, point_covariances, shared_covariance_table, shared_errors
 
 log = logging.getLogger("jaxstereo")
 
@@ -54,7 +55,9 @@ class ReconstructOptions:
     Lucas-Kanade over `subpixel_window` px patches from whole-pixel bases, where the surface is smooth
     (see `refine_disparity`; on the POV-Ray flume's boards the RMSE falls from 2.9 to 2.0 mm (nadir) and
     from 1.8 to 1.1 mm (oblique); on its rubble the MAE changes by +0.1 mm); without it, SGBM's own
-    sub-pixel values.
+    sub-pixel values; `max_sigma_disparity_px` drop matches whose disparity's standard deviation (from the
+    matching itself, see `refine_disparity`) exceeds this: the images do not place them; `water_level_std_m` the water level's standard deviation (metres) for the points'
+    covariance (default: the one `refine` recorded for the rig's own level, else 0: a given level is exact).
     """
 
     model: str = "exact"
@@ -62,14 +65,21 @@ class ReconstructOptions:
     match: MatchOptions = MatchOptions()
     colour: bool = True
     max_ray_gap_px: float = 1.0
+    max_sigma_disparity_px: float = 1.0
     subpixel: bool = True
     subpixel_window: int = 31
+    water_level_std_m: float | None = None
 
     def __post_init__(self):
         if self.model not in MODELS:
             raise JaxStereoError(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
         if not self.max_ray_gap_px > 0:
             raise JaxStereoError(f"max_ray_gap_px must be positive, got {self.max_ray_gap_px}")
+        if not self.max_sigma_disparity_px > 0:
+            raise JaxStereoError(f"max_sigma_disparity_px must be positive, got {self.max_sigma_disparity_px}")
+        if self.water_level_std_m is not None and not (np.isfinite(self.water_level_std_m)
+                                                      and self.water_level_std_m >= 0):
+            raise JaxStereoError(f"water_level_std_m must be a finite number >= 0 metres, got {self.water_level_std_m}")
 
 
 def _check_inputs(left_image, right_image, rig: Rig, interface: Interface | None, z_range):
@@ -138,15 +148,15 @@ def _chunked(fn, args, *columns):
     return [np.concatenate([o[i] for o in outs]) for i in range(len(outs[0]))]
 
 
-def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera, interface: Interface | None,
+def _triangulate_model(rect: Rectification, left_cam: Camera, right_cam: Camera, interface: Interface | None,
                        model: str, rl, rr):
     """Triangulate rectified-pixel pairs with `model`; no undistortion needed.
 
     `exact`: a match whose in-air point lies above the water is emerged; otherwise both rays are refracted
     exactly. `first-order`: under-water points from the virtual cameras' rays. `none`: all in air.
 
-    **Returns:** `(points, gap, submerged, ok, distance)`: world points (n, 3), ray gaps (n,) metres, under
-    water (n,), valid rays (n,), distance from the left camera (n,) metres.
+    **Returns:** `(points, gap, submerged, ok)`: world points (n, 3), ray gaps (n,) metres, under water (n,),
+    valid rays (n,).
     """
     if model == "exact" or interface is None:
         points, gap, submerged, ok = triangulate_exact(rect, left_cam, right_cam, interface, rl, rr)
@@ -166,8 +176,24 @@ def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera,
             ok = ~submerged | (water[0][2] & water[1][2])
         else:
             submerged = interface.height_of(points) < 0
+    return points, gap, submerged, ok
+
+
+def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera, interface: Interface | None,
+                       model: str, rl, rr):
+    """`_triangulate_model`, and each point's derivative with respect to its disparity (a forward-mode JVP).
+
+    **Returns:** `(points, gap, submerged, ok, distance, dpoint_dd)`: as `_triangulate_model`, the distance
+    from the left camera (n,) metres, and d(point)/d(disparity) (n, 3) metres per pixel.
+    """
+    def points_of(right_pixels):
+        out = _triangulate_model(rect, left_cam, right_cam, interface, model, rl, right_pixels)
+        return out[0], out
+
+    tangent = jnp.zeros_like(rr).at[:, 0].set(-1.0)  # a larger disparity moves the right pixel left
+    _, dpoint_dd, (points, gap, submerged, ok) = jax.jvp(points_of, (rr,), (tangent,), has_aux=True)
     distance = jnp.linalg.norm(points - left_cam.center, axis=-1)
-    return points, gap, submerged, ok, distance
+    return points, gap, submerged, ok, distance, dpoint_dd
 
 
 _triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=4)
@@ -244,14 +270,22 @@ def reconstruct(
 
     t1 = time.perf_counter()
     offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None
-    if options.subpixel:
-        disparity = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window)
+    disparity, sigma_d = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
+                                          sigma_window=options.match.block_size, subpixel=options.subpixel)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
+    disparity = np.where(sigma_d <= options.max_sigma_disparity_px, disparity, np.nan)
+    undetermined = int(np.count_nonzero(sigma_d > options.max_sigma_disparity_px))
     kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px)
     timings["triangulate (s)"] = time.perf_counter() - t2
-    survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model)
+    t3 = time.perf_counter()
+    shared = shared_errors(rig, _level_std(rig, water_level, interface, options))
+    table = shared_covariance_table(rect, rig, interface, shared, rig.image_size, search)
+    cov, sigma_z_match = point_covariances(table, kept.v, kept.u, disparity[kept.v, kept.u], kept.submerged,
+                                           sigma_d[kept.v, kept.u].astype(np.float64), kept.dpoint_dd)
+    timings["uncertainty (s)"] = time.perf_counter() - t3
+    survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model, cov, sigma_z_match)
     under = offset[kept.v, kept.u][survey.submerged] if offset is not None else np.zeros(0)
     summary = {
         "points": len(survey),
@@ -261,9 +295,11 @@ def reconstruct(
         "rectification": mode,
         "disparity_search_px": [search[0], search[0] + search[1]],
         **kept.counts,
+        "dropped_undetermined": undetermined,
         "vertical_parallax_px_mean": float(np.mean(np.abs(under))) if under.size else 0.0,
         "vertical_parallax_px_max": float(np.max(np.abs(under))) if under.size else 0.0,
         "median_ray_gap_px": kept.median_gap_px,
+        **_uncertainty_summary(survey, shared, sigma_d[kept.v, kept.u]),
         "seconds": timings,
     }
     return survey, summary
@@ -272,7 +308,8 @@ def reconstruct(
 @dataclasses.dataclass(frozen=True)
 class _Kept:
     """The matches that became points: their left rectified pixels (`v`, `u`), points (k, 3) world metres,
-    submerged flags (k,), the match counts and drops by reason, and the median ray gap (pixels)."""
+    submerged flags (k,), the match counts and drops by reason, the median ray gap (pixels), and each
+    point's derivative with respect to its disparity (k, 3) metres per pixel."""
 
     v: np.ndarray
     u: np.ndarray
@@ -280,6 +317,7 @@ class _Kept:
     submerged: np.ndarray
     counts: dict
     median_gap_px: float
+    dpoint_dd: np.ndarray
 
 
 def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offset, z_range, max_ray_gap_px) -> _Kept:
@@ -290,7 +328,7 @@ def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offse
         rr[:, 1] += offset[v, u]
     if rl.shape[0] == 0:
         raise JaxStereoError("no matches survived: SGBM found no match in the expected depth range (no shared texture?)")
-    points, gap, submerged, ok, distance = _chunked(
+    points, gap, submerged, ok, distance, dpoint_dd = _chunked(
         _triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model), rl, rr)
     gap_px = gap * float(rect.K[0, 0]) / np.maximum(distance, 1e-9)
     finite = ok & np.all(np.isfinite(points), axis=1)
@@ -301,10 +339,11 @@ def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offse
         raise JaxStereoError("no matches survived: the images share no matchable texture in the expected depth range")
     counts = {"matches": int(rl.shape[0]), "dropped_rays_apart": int(np.sum(finite & ~meets)),
               "dropped_outside_height_range": int(np.sum(meets & ~inside)), "dropped_invalid_rays": int(np.sum(~finite))}
-    return _Kept(v[keep], u[keep], points[keep], submerged[keep].astype(bool), counts, float(np.median(gap_px[keep])))
+    return _Kept(v[keep], u[keep], points[keep], submerged[keep].astype(bool), counts, float(np.median(gap_px[keep])),
+                 dpoint_dd[keep])
 
 
-def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str) -> Survey:
+def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str, cov, sigma_z_match) -> Survey:
     """The survey of the kept points: colours from the left rectified image, pixels of the real left image."""
     colour = rect_l[kept.v, kept.u]
     level = float(interface.level) if interface is not None else float("nan")
@@ -316,4 +355,34 @@ def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str) -
         rig_json=json.dumps(rig_to_dict(rig.with_interface(interface)), default=float),
         model=model,
         water_level=level,
+        cov=cov,
+        sigma_z_match=sigma_z_match,
     )
+
+
+def _level_std(rig: Rig, water_level: float | None, interface: Interface | None, options) -> float:
+    """The water level's std (metres): `options.water_level_std_m` when given; else, for the rig's own level,
+    the std `refine` recorded with it; else 0 (a level given as a number is taken as exact)."""
+    if interface is None:
+        return 0.0
+    if options.water_level_std_m is not None:
+        return float(options.water_level_std_m)
+    if water_level is None and isinstance(rig.calibration, dict):
+        refined = rig.calibration.get("refine", {}).get("parameters", {}).get("water level (m)")
+        if refined is not None:
+            return float(refined[1])
+    return 0.0
+
+
+def _uncertainty_summary(survey: Survey, shared: SharedErrors, sigma_d) -> dict:
+    """Median vertical std (mm) of emerged and submerged points, total and from matching alone; the median
+    disparity std (px); the shared parameters' std and which of them the rig recorded."""
+    out = {"median_sigma_disparity_px": float(np.median(sigma_d))}
+    sigma_z = survey.sigma_z
+    for name, sel in (("emerged", ~survey.submerged), ("submerged", survey.submerged)):
+        if sel.any():
+            out[f"median_sigma_z_{name}_mm"] = 1e3 * float(np.median(sigma_z[sel]))
+            out[f"median_sigma_z_match_{name}_mm"] = 1e3 * float(np.median(survey.sigma_z_match[sel]))
+    out["shared_std"] = {k: v for k, v in shared.std.items()}
+    out["shared_recorded"] = shared.recorded
+    return out

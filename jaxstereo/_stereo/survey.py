@@ -19,7 +19,11 @@ class Survey:
 
     **Fields:** `points` (N, 3) world metres; `colors` (N, 3) uint8 RGB; `pixels` (N, 2) left-image
     pixels; `submerged` (N,) bool; `rig_json` the rig used (JSON text); `model` "exact",
-    "first-order" or "none"; `water_level` metres (NaN for a dry survey).
+    "first-order" or "none"; `water_level` metres (NaN for a dry survey); `cov` (N, 6) each point's
+    covariance [xx, yy, zz, xy, xz, yz] m^2 (world axes; matching and shared errors together, see
+    `jaxstereo._stereo.uncertainty`), None when not known (surveys written before it existed);
+    `sigma_z_match` (N,) the vertical std (metres) from matching alone, independent between points beyond
+    the matching window (the rest of `sigma_z` is shared by every point of the survey), or None.
     """
 
     points: np.ndarray
@@ -29,9 +33,23 @@ class Survey:
     rig_json: str
     model: str
     water_level: float
+    cov: np.ndarray | None = None
+    sigma_z_match: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
+
+    @property
+    def sigma_z(self) -> np.ndarray | None:
+        """Each point's vertical standard deviation (N,) metres, or None when the survey has no covariance."""
+        return None if self.cov is None else np.sqrt(np.maximum(self.cov[:, 2].astype(np.float64), 0.0))
+
+    @property
+    def sigma_z_shared(self) -> np.ndarray | None:
+        """The part of `sigma_z` (N,) metres shared by every point (calibration, water level), or None."""
+        if self.cov is None or self.sigma_z_match is None:
+            return None
+        return np.sqrt(np.maximum(self.cov[:, 2].astype(np.float64) - self.sigma_z_match.astype(np.float64) ** 2, 0.0))
 
 
 def save_survey(survey: Survey, path: PathLike) -> None:
@@ -39,11 +57,16 @@ def save_survey(survey: Survey, path: PathLike) -> None:
     path = Path(path)
     if path.suffix != ".npz":
         raise JaxStereoError(f"survey file {str(path)!r} must end in .npz")
+    extra = {}
+    if survey.cov is not None:
+        extra["cov"] = survey.cov.astype(np.float32)
+    if survey.sigma_z_match is not None:
+        extra["sigma_z_match"] = survey.sigma_z_match.astype(np.float32)
     with atomic_path(path) as tmp:
         np.savez(tmp, points=survey.points.astype(np.float64), colors=survey.colors.astype(np.uint8),
                  pixels=survey.pixels.astype(np.float32), submerged=survey.submerged.astype(bool),
                  rig=np.array(survey.rig_json), model=np.array(survey.model),
-                 water_level=np.array(survey.water_level, dtype=np.float64))
+                 water_level=np.array(survey.water_level, dtype=np.float64), **extra)
 
 
 def load_survey(path: PathLike) -> Survey:
@@ -64,20 +87,46 @@ def survey_from_fields(fields: dict, path) -> Survey:
     bad = int(np.count_nonzero(~np.all(np.isfinite(points), axis=1)))
     if bad:
         raise JaxStereoError(f"survey {str(path)!r} holds {bad} point(s) with NaN or infinite coordinates")
+    cov = _optional(fields, "cov", (points.shape[0], 6), path)
+    sigma_z_match = _optional(fields, "sigma_z_match", (points.shape[0],), path)
     return Survey(points, np.asarray(fields["colors"]), np.asarray(fields["pixels"]),
                   np.asarray(fields["submerged"], dtype=bool), str(fields.get("rig", "")),
-                  str(fields.get("model", "")), float(fields.get("water_level", np.nan)))
+                  str(fields.get("model", "")), float(fields.get("water_level", np.nan)), cov, sigma_z_match)
+
+
+def _optional(fields: dict, key: str, shape: tuple, path) -> np.ndarray | None:
+    """An optional per-point array of the survey file: None when absent; checked for shape and finiteness."""
+    if key not in fields:
+        return None
+    value = np.asarray(fields[key], dtype=np.float32)
+    if value.shape != shape:
+        raise JaxStereoError(f"survey {str(path)!r}: {key} must have shape {shape}, got {value.shape}")
+    if not np.all(np.isfinite(value)):
+        raise JaxStereoError(f"survey {str(path)!r}: {key} holds NaN or infinite values")
+    return value
 
 
 def save_ply(survey: Survey, path: PathLike) -> None:
-    """Write the points and colours as a binary little-endian PLY, atomically."""
+    """Write the points and colours as a binary little-endian PLY, atomically; with the survey's covariance,
+    also the vertical std `sigma_z` and its matching part `sigma_z_match` (float, metres), which CloudCompare
+    shows as scalar fields."""
     n = len(survey)
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")]
+    scalars = {}
+    if survey.cov is not None:
+        scalars["sigma_z"] = survey.sigma_z
+        if survey.sigma_z_match is not None:
+            scalars["sigma_z_match"] = survey.sigma_z_match
+    fields += [(name, "<f4") for name in scalars]
     header = (f"ply\nformat binary_little_endian 1.0\ncomment jaxstereo survey, model {survey.model}, world metres\n"
               f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
-    record = np.zeros(n, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+              "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+              + "".join(f"property float {name}\n" for name in scalars) + "end_header\n").encode()
+    record = np.zeros(n, dtype=fields)
     record["x"], record["y"], record["z"] = survey.points.T
     record["r"], record["g"], record["b"] = survey.colors.T
+    for name, values in scalars.items():
+        record[name] = values
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(header)

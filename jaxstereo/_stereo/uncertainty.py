@@ -1,0 +1,179 @@
+"""Each survey point's covariance, propagated by JAX derivatives through the exact refracted triangulation.
+
+Two kinds of error, kept apart because they behave differently downstream:
+
+- **matching**, independent from match to match (beyond the matching window): the disparity's standard
+  deviation from the matching itself (`refine_disparity`) times the derivative of the point with respect
+  to the right pixel, a forward-mode JVP taken with the triangulation;
+- **shared** by every point of a survey: the calibration (the world frame's 6 parameters, the right
+  camera's pose relative to the left 6, the focal length 1) and the water level (1), with the covariance
+  the calibration and `refine` recorded in the rig. Their effect on a point is the (3, 14) Jacobian of the
+  triangulation with respect to them, computed exactly on a table over (u, v, disparity) for emerged and
+  for submerged points, and interpolated to each match (it is smooth in all three).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import ndimage
+
+from .._calibration.rig import Rig
+from .._geometry.camera import Camera
+from .._geometry.interface import Interface
+from .._geometry.pose import so3_exp
+from .._geometry.refraction import intersect_plane, refract_directions
+from .._geometry.triangulate import triangulate_rays
+from .rectify import Rectification, rectified_rays
+
+SHARED_PARAMETERS = ("frame rotation x (rad)", "frame rotation y (rad)", "frame rotation z (rad)",
+                     "frame shift x (m)", "frame shift y (m)", "frame shift z (m)",
+                     "right rotation x (rad)", "right rotation y (rad)", "right rotation z (rad)",
+                     "right shift x (m)", "right shift y (m)", "right shift z (m)",
+                     "focal length (relative)", "water level (m)")
+TABLE_STEP_PX = 48  # table spacing in u and v (pixels)
+TABLE_STEP_DISPARITY_PX = 8  # and in disparity
+
+
+@dataclasses.dataclass(frozen=True)
+class SharedErrors:
+    """The errors shared by every point of a survey.
+
+    **Fields:** `cov` (14, 14) covariance of the parameters named in `SHARED_PARAMETERS` (radians, metres,
+    relative focal length; block diagonal: frame, right pose, focal, level); `recorded` which of the rig's
+    records were found ("world frame", "right pose", "focal length", "water level") and which were not.
+    """
+
+    cov: np.ndarray
+    recorded: dict
+
+    @property
+    def std(self) -> dict:
+        return {name: float(np.sqrt(self.cov[k, k])) for k, name in enumerate(SHARED_PARAMETERS)}
+
+
+def shared_errors(rig: Rig, level_std_m: float) -> SharedErrors:
+    """The shared errors of surveys made with `rig`: the world frame's and the right pose's covariance and the
+    focal length's relative std from its calibration record, and the water level's std `level_std_m` (metres;
+    0 for a level known exactly, or a dry survey). A record the rig lacks counts as zero and is named so."""
+    record = rig.calibration if isinstance(rig.calibration, dict) else {}
+    frame = record.get("world_frame") if isinstance(record.get("world_frame"), dict) else {}
+    cov = np.zeros((14, 14))
+    recorded = {}
+    for key, block, name in (("frame_cov", slice(0, 6), "world frame"), ("right_pose_cov", slice(6, 12), "right pose")):
+        value = np.asarray(frame.get(key, np.zeros((0, 0))), dtype=np.float64)
+        recorded[name] = value.shape == (6, 6) and bool(np.all(np.isfinite(value)))
+        if recorded[name]:
+            cov[block, block] = value
+    focal = record.get("focal_std_rel")
+    recorded["focal length"] = focal is not None and bool(np.isfinite(focal))
+    cov[12, 12] = float(focal) ** 2 if recorded["focal length"] else 0.0
+    recorded["water level"] = bool(np.isfinite(level_std_m))
+    cov[13, 13] = float(level_std_m) ** 2 if recorded["water level"] else 0.0
+    return SharedErrors(cov, recorded)
+
+
+def _perturbed_rays(theta, rect: Rectification, left: Camera, right: Camera, rl, rr):
+    """The real rays of rectified matches under a small error `theta` (14,) of the shared parameters:
+    `((c_l, d_l), (c_r, d_r))` world centres and unit directions (n, 3)."""
+    (cl, dl, _), (cr, dr, _) = (rectified_rays(rect, cam, side, px) for side, cam, px in ((0, left, rl), (1, right, rr)))
+    eps = theta[12]
+    rays = []
+    for cam, c, d in ((left, cl, dl), (right, cr, dr)):
+        # A focal length off by eps: the rays' angles shrink, and the camera, fitted to the origin board with
+        # that focal length, sits eps further from it (the world origin).
+        dc = d @ cam.pose.R.T
+        dc = jnp.concatenate([dc[..., :2] / (1.0 + eps), dc[..., 2:]], axis=-1)
+        rays.append([c * (1.0 + eps), dc @ cam.pose.R])
+    rays[1][1] = rays[1][1] @ so3_exp(theta[6:9])  # the right pose's rotation (`Pose.retract`: R exp(w))
+    rays[1][0] = rays[1][0] + theta[9:12]
+    frame = so3_exp(theta[0:3])  # the world frame's move: X -> exp(w) X + v
+    out = []
+    for c, d in rays:
+        d = d @ frame.T
+        out.append((c @ frame.T + theta[3:6], d / jnp.linalg.norm(d, axis=-1, keepdims=True)))
+    return out
+
+
+def _triangulate_as(submerged: bool, interface: Interface | None, theta, rays):
+    """Points (n, 3) from two rays each: in air, or both refracted at the interface raised by `theta[13]`."""
+    (cl, dl), (cr, dr) = rays
+    if not submerged or interface is None:
+        return triangulate_rays(cl, dl, cr, dr)[0]
+    refracted = []
+    for c, d in ((cl, dl), (cr, dr)):
+        hit, _ = intersect_plane(c, d, interface.normal, interface.level + theta[13])
+        bent, _ = refract_directions(d, interface.normal, interface.n_air, interface.n_water)
+        refracted.append((hit, bent))
+    return triangulate_rays(refracted[0][0], refracted[0][1], refracted[1][0], refracted[1][1])[0]
+
+
+def _shared_jacobians(rect, left, right, interface, rl, rr):
+    """(2, n, 3, 14): the points' Jacobians with respect to the shared parameters, emerged and submerged."""
+    def points(theta, submerged):
+        return _triangulate_as(submerged, interface, theta, _perturbed_rays(theta, rect, left, right, rl, rr))
+
+    zero = jnp.zeros(14)
+    return jnp.stack([jax.jacfwd(points)(zero, s) for s in (False, True)])
+
+
+_shared_jacobians_jit = jax.jit(_shared_jacobians)
+
+
+def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface | None, shared: SharedErrors,
+                            image_size: tuple[int, int], search: tuple[int, int]) -> dict:
+    """The shared errors' covariance of a point (3, 3), for emerged and submerged points, on a table over the
+    left rectified pixel (u, v) and the disparity (every `TABLE_STEP_PX` and `TABLE_STEP_DISPARITY_PX`).
+
+    **Returns:** `{"table": (2, nv, nu, nd, 6) [xx, yy, zz, xy, xz, yz] m^2, "origin": (v0, u0, d0),
+    "step": (sv, su, sd)}` for `point_covariances`.
+    """
+    w, h = image_size
+    us = np.arange(0, w - 1 + TABLE_STEP_PX, TABLE_STEP_PX, dtype=np.float64)
+    vs = np.arange(0, h - 1 + TABLE_STEP_PX, TABLE_STEP_PX, dtype=np.float64)
+    ds = np.arange(search[0], search[0] + search[1] + TABLE_STEP_DISPARITY_PX, TABLE_STEP_DISPARITY_PX,
+                   dtype=np.float64)
+    V, U, D = np.meshgrid(vs, us, ds, indexing="ij")
+    rl = jnp.asarray(np.stack([U.ravel(), V.ravel()], axis=-1))
+    rr = jnp.asarray(np.stack([U.ravel() - D.ravel(), V.ravel()], axis=-1))
+    J = np.asarray(_shared_jacobians_jit(rect, rig.left, rig.right, interface, rl, rr))
+    cov = np.einsum("cnik,kl,cnjl->cnij", J, shared.cov, J)
+    six = np.stack([cov[..., 0, 0], cov[..., 1, 1], cov[..., 2, 2], cov[..., 0, 1], cov[..., 0, 2], cov[..., 1, 2]],
+                   axis=-1)
+    six = np.nan_to_num(six, nan=0.0, posinf=0.0, neginf=0.0)
+    return {"table": six.reshape((2,) + V.shape + (6,)), "origin": (0.0, 0.0, float(search[0])),
+            "step": (float(TABLE_STEP_PX), float(TABLE_STEP_PX), float(TABLE_STEP_DISPARITY_PX))}
+
+
+def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.ndarray, submerged: np.ndarray,
+                      sigma_d: np.ndarray, dpoint_dd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's covariance: shared (interpolated from `table`) plus matching (`sigma_d^2 j j^T`).
+
+    **Arguments:** the matches' left rectified rows `v`, columns `u`, disparities (k,) pixels; `submerged`
+    (k,) bool; the disparities' std `sigma_d` (k,) pixels; `dpoint_dd` (k, 3) metres per pixel of disparity.
+
+    **Returns:** `(cov, sigma_z_match)`: (k, 6) float32 [xx, yy, zz, xy, xz, yz] m^2, and the matching part of
+    the vertical std (k,) float32 metres.
+    """
+    origin, step = table["origin"], table["step"]
+    coords = np.stack([(v - origin[0]) / step[0], (u - origin[1]) / step[1], (disparity - origin[2]) / step[2]])
+    cov = np.zeros((len(v), 6))
+    for cls in (0, 1):
+        sel = np.nonzero(submerged == bool(cls))[0]
+        if sel.size:
+            for k in range(6):
+                cov[sel, k] = ndimage.map_coordinates(table["table"][cls, ..., k], coords[:, sel], order=1,
+                                                      mode="nearest")
+    j = dpoint_dd * sigma_d[:, None]
+    cov += np.stack([j[:, 0] ** 2, j[:, 1] ** 2, j[:, 2] ** 2, j[:, 0] * j[:, 1], j[:, 0] * j[:, 2],
+                     j[:, 1] * j[:, 2]], axis=-1)
+    return cov.astype(np.float32), np.abs(j[:, 2]).astype(np.float32)
+
+
+def covariance_matrices(cov6: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) symmetric matrices from (n, 6) [xx, yy, zz, xy, xz, yz]."""
+    xx, yy, zz, xy, xz, yz = np.moveaxis(np.asarray(cov6, dtype=np.float64), -1, 0)
+    return np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1), np.stack([xz, yz, zz], -1)], -2)
