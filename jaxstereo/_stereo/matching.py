@@ -78,7 +78,7 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, min_disparity: int, num_
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,
                      window: int = 31, max_spread_px: float = 0.5, sigma_window: int = 5,
-                     subpixel: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                     subpixel: bool = True, with_sigma: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """Sub-pixel disparities by Lucas-Kanade over a `window` x `window` patch, from whole-pixel bases, and
     each disparity's standard deviation from the fit's own residuals.
 
@@ -101,7 +101,7 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     no match (`x_right = x_left - d`); `row_offset` (h, w) pixels or None.
 
     **Returns:** `(disparity, sigma)`: the refined disparity (h, w) and its standard deviation (h, w), both
-    pixels, NaN where the input was NaN.
+    pixels, NaN where the input was NaN; `sigma` is None when `with_sigma` is False.
     """
     L = _channels(left)
     Rimg = _channels(right)
@@ -116,28 +116,35 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     fraction = d0 - base
     shift = float(np.median(base[valid])) if valid.any() else 0.0  # keeps the sums' terms small (float64 anyway)
     products = []
+    L64 = L.astype(np.float64)
     for k in (base, base + 1):
         cols = np.clip(u - k, 0, w - 1)
         g = gradient[rows, cols].astype(np.float64)
-        r = L.astype(np.float64) - Rimg[rows, cols]
-        products.append(_fit_products(g, r, k - shift, weight))
-    fits = {size: [_window_fit(p, (size, size), L.shape[2]) for p in products] for size in {window, sigma_window}}
-    at_sgbm = [(1 - fraction) * a + fraction * b for a, b in zip(*[_evaluate(f, d0 - shift) for f in fits[sigma_window]])]
-    sigma_sgbm = SGBM_NOISE_SCALE * np.sqrt(at_sgbm[1] / np.maximum(at_sgbm[0], 1e-12))
+        r = L64 - Rimg[rows, cols]
+        products.append(_fit_products(g, r, k - shift, weight, with_sigma))
+    sizes = ({window} if subpixel else set()) | ({sigma_window} if with_sigma else set())
+    fits = {size: [_window_fit(p, (size, size), L.shape[2]) for p in products] for size in sizes}
+    sigma_sgbm = None
+    if with_sigma:
+        at_sgbm = [(1 - fraction) * a + fraction * b
+                   for a, b in zip(*[_evaluate(f, d0 - shift) for f in fits[sigma_window]])]
+        sigma_sgbm = SGBM_NOISE_SCALE * np.sqrt(at_sgbm[1] / np.maximum(at_sgbm[0], 1e-12))
     if not subpixel:
         return _masked(d0, valid), _masked(sigma_sgbm, valid)
     estimates = [f[2] + shift for f in fits[window]]
     refined = (1 - fraction) * estimates[0] + fraction * estimates[1]
-    at_refined = [_evaluate(f, f[2]) for f in fits[window]]
-    variance = [s2 / np.maximum(gg, 1e-12) for gg, s2 in at_refined]
-    sigma_refined = MATCH_NOISE_SCALE * np.sqrt((1 - fraction) * variance[0] + fraction * variance[1])
+    sigma_refined = None
+    if with_sigma:
+        variance = [s2 / np.maximum(gg, 1e-12) for gg, s2 in (_evaluate(f, f[2]) for f in fits[window])]
+        sigma_refined = MATCH_NOISE_SCALE * np.sqrt((1 - fraction) * variance[0] + fraction * variance[1])
     box = (window, window)
     count = cv2.boxFilter(weight, -1, box, normalize=False)
     mean = cv2.boxFilter(d0 * weight, -1, box, normalize=False) / np.maximum(count, 1)
     square = cv2.boxFilter(d0 * d0 * weight, -1, box, normalize=False) / np.maximum(count, 1)
     smooth = np.sqrt(np.maximum(square - mean * mean, 0.0)) <= max_spread_px
     keep = valid & smooth & (count >= 0.5 * window * window) & (np.abs(refined - d0) < 1.0)
-    return _masked(np.where(keep, refined, d0), valid), _masked(np.where(keep, sigma_refined, sigma_sgbm), valid)
+    sigma = None if not with_sigma else np.where(keep, sigma_refined, sigma_sgbm)
+    return _masked(np.where(keep, refined, d0), valid), _masked(sigma, valid)
 
 
 # Least-squares standard deviations assume independent pixel noise; JPEG blocks, demosaicing and the Sobel
@@ -147,31 +154,36 @@ MATCH_NOISE_SCALE = 4.0
 SGBM_NOISE_SCALE = 1.4
 
 
-def _fit_products(g, r, k, weight):
-    """Per-pixel terms (summed over channels) of the patch fit `r + g (d - k) = 0` at base `k` (h, w)."""
-    gg = (g * g).sum(axis=-1) * weight
-    rg = (r * g).sum(axis=-1) * weight
-    rr = (r * r).sum(axis=-1) * weight
-    return gg, gg * k, rg, rr, rg * k, gg * k * k, weight
+def _fit_products(g, r, k, weight, residuals: bool):
+    """Per-pixel terms (summed over channels) of the patch fit `r + g (d - k) = 0` at base `k` (h, w):
+    `(gg, ggk, rg, weight)`, and with `residuals` also `(rr, rgk, ggkk)` for the fit's residual."""
+    gg = np.einsum("...c,...c->...", g, g) * weight
+    rg = np.einsum("...c,...c->...", r, g) * weight
+    terms = (gg, gg * k, rg, weight)
+    if residuals:
+        terms += (np.einsum("...c,...c->...", r, r) * weight, rg * k, gg * k * k)
+    return terms
 
 
 def _window_fit(products, box, channels: int):
-    """Window sums of the fit's terms, its least-squares shift `d` (relative to the sums' `k`), and the
-    number of samples: `(S_gg, S_ggk, d, S_rg, S_rr, S_rgk, S_ggkk, n)`."""
+    """Window sums of the fit's terms and its least-squares shift `d` (relative to the sums' `k`):
+    `(S_gg, S_ggk, d, S_rg, n samples, S_rr, S_rgk, S_ggkk)` (the last three with the residual terms)."""
     sums = [cv2.boxFilter(a, -1, box, normalize=False) for a in products]
-    gg, ggk, rg, rr, rgk, ggkk, count = sums
+    gg, ggk, rg, count = sums[:4]
     d = (ggk - rg) / np.maximum(gg, 1e-12)
-    return gg, ggk, d, rg, rr, rgk, ggkk, count * channels
+    return (gg, ggk, d, rg, count * channels, *sums[4:])
 
 
 def _evaluate(fit, d):
     """`(S_gg, s2)`: the gradient energy and the residual variance of the window fit at shift `d` (h, w)."""
-    gg, ggk, _, rg, rr, rgk, ggkk, n = fit
+    gg, ggk, _, rg, n, rr, rgk, ggkk = fit
     rss = rr + 2 * d * rg - 2 * rgk + d * d * gg - 2 * d * ggk + ggkk
     return gg, np.maximum(rss, 0.0) / np.maximum(n - 1, 1)
 
 
 def _masked(values, valid):
+    if values is None:
+        return None
     out = values.astype(np.float32)
     out[~valid] = np.nan
     return out

@@ -56,8 +56,10 @@ class ReconstructOptions:
     (see `refine_disparity`; on the POV-Ray flume's boards the RMSE falls from 2.9 to 2.0 mm (nadir) and
     from 1.8 to 1.1 mm (oblique); on its rubble the MAE changes by +0.1 mm); without it, SGBM's own
     sub-pixel values; `max_sigma_disparity_px` drop matches whose disparity's standard deviation (from the
-    matching itself, see `refine_disparity`) exceeds this: the images do not place them; `water_level_std_m` the water level's standard deviation (metres) for the points'
-    covariance (default: the one `refine` recorded for the rig's own level, else 0: a given level is exact).
+    matching itself, see `refine_disparity`) exceeds this: the images do not place them; `uncertainty`
+    propagate each point's covariance (`Survey.cov`, see `jaxstereo._stereo.uncertainty`);
+    `water_level_std_m` the water level's standard deviation (metres) for the points' covariance (default:
+    the one `refine` recorded for the rig's own level, else 0: a level given as a number is exact).
     """
 
     model: str = "exact"
@@ -66,6 +68,7 @@ class ReconstructOptions:
     colour: bool = True
     max_ray_gap_px: float = 1.0
     max_sigma_disparity_px: float = 1.0
+    uncertainty: bool = True
     subpixel: bool = True
     subpixel_window: int = 31
     water_level_std_m: float | None = None
@@ -180,12 +183,18 @@ def _triangulate_model(rect: Rectification, left_cam: Camera, right_cam: Camera,
 
 
 def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera, interface: Interface | None,
-                       model: str, rl, rr):
+                       model: str, with_jacobian: bool, rl, rr):
     """`_triangulate_model`, and each point's derivative with respect to its disparity (a forward-mode JVP).
 
     **Returns:** `(points, gap, submerged, ok, distance, dpoint_dd)`: as `_triangulate_model`, the distance
-    from the left camera (n,) metres, and d(point)/d(disparity) (n, 3) metres per pixel.
+    from the left camera (n,) metres, and d(point)/d(disparity) (n, 3) metres per pixel (zeros without
+    `with_jacobian`).
     """
+    if not with_jacobian:
+        points, gap, submerged, ok = _triangulate_model(rect, left_cam, right_cam, interface, model, rl, rr)
+        distance = jnp.linalg.norm(points - left_cam.center, axis=-1)
+        return points, gap, submerged, ok, distance, jnp.zeros_like(points)
+
     def points_of(right_pixels):
         out = _triangulate_model(rect, left_cam, right_cam, interface, model, rl, right_pixels)
         return out[0], out
@@ -196,7 +205,7 @@ def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera,
     return points, gap, submerged, ok, distance, dpoint_dd
 
 
-_triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=4)
+_triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=(4, 5))
 
 
 OFFSET_GRID_PX = 32  # spacing of the exact row-offset table in u and v (pixels)
@@ -271,20 +280,26 @@ def reconstruct(
     t1 = time.perf_counter()
     offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None
     disparity, sigma_d = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
-                                          sigma_window=options.match.block_size, subpixel=options.subpixel)
+                                          sigma_window=options.match.block_size, subpixel=options.subpixel,
+                                          with_sigma=options.uncertainty)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    disparity = np.where(sigma_d <= options.max_sigma_disparity_px, disparity, np.nan)
-    undetermined = int(np.count_nonzero(sigma_d > options.max_sigma_disparity_px))
-    kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px)
+    undetermined = 0
+    if sigma_d is not None:
+        undetermined = int(np.count_nonzero(sigma_d > options.max_sigma_disparity_px))
+        disparity = np.where(sigma_d <= options.max_sigma_disparity_px, disparity, np.nan)
+    kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px,
+                                options.uncertainty)
     timings["triangulate (s)"] = time.perf_counter() - t2
-    t3 = time.perf_counter()
-    shared = shared_errors(rig, _level_std(rig, water_level, interface, options))
-    table = shared_covariance_table(rect, rig, interface, shared, rig.image_size, search)
-    cov, sigma_z_match = point_covariances(table, kept.v, kept.u, disparity[kept.v, kept.u], kept.submerged,
-                                           sigma_d[kept.v, kept.u].astype(np.float64), kept.dpoint_dd)
-    timings["uncertainty (s)"] = time.perf_counter() - t3
+    cov = sigma_z_match = shared = None
+    if options.uncertainty:
+        t3 = time.perf_counter()
+        shared = shared_errors(rig, _level_std(rig, water_level, interface, options))
+        table = shared_covariance_table(rect, rig, interface, shared, rig.image_size, search)
+        cov, sigma_z_match = point_covariances(table, kept.v, kept.u, disparity[kept.v, kept.u], kept.submerged,
+                                               sigma_d[kept.v, kept.u].astype(np.float64), kept.dpoint_dd)
+        timings["uncertainty (s)"] = time.perf_counter() - t3
     survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model, cov, sigma_z_match)
     under = offset[kept.v, kept.u][survey.submerged] if offset is not None else np.zeros(0)
     summary = {
@@ -299,7 +314,7 @@ def reconstruct(
         "vertical_parallax_px_mean": float(np.mean(np.abs(under))) if under.size else 0.0,
         "vertical_parallax_px_max": float(np.max(np.abs(under))) if under.size else 0.0,
         "median_ray_gap_px": kept.median_gap_px,
-        **_uncertainty_summary(survey, shared, sigma_d[kept.v, kept.u]),
+        **(_uncertainty_summary(survey, shared, sigma_d[kept.v, kept.u]) if shared is not None else {}),
         "seconds": timings,
     }
     return survey, summary
@@ -320,16 +335,17 @@ class _Kept:
     dpoint_dd: np.ndarray
 
 
-def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offset, z_range, max_ray_gap_px) -> _Kept:
+def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offset, z_range, max_ray_gap_px,
+                         with_jacobian: bool) -> _Kept:
     """Triangulate every match (exactly, chunked); keep those whose rays meet within `max_ray_gap_px` and
-    whose point lies in `z_range`."""
+    whose point lies in `z_range`; with `with_jacobian`, each point's derivative with respect to its disparity."""
     rl, rr, v, u = _pairs_from_disparity(disparity)
     if offset is not None:
         rr[:, 1] += offset[v, u]
     if rl.shape[0] == 0:
         raise JaxStereoError("no matches survived: SGBM found no match in the expected depth range (no shared texture?)")
     points, gap, submerged, ok, distance, dpoint_dd = _chunked(
-        _triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model), rl, rr)
+        _triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model, with_jacobian), rl, rr)
     gap_px = gap * float(rect.K[0, 0]) / np.maximum(distance, 1e-9)
     finite = ok & np.all(np.isfinite(points), axis=1)
     meets = finite & (gap_px <= max_ray_gap_px)

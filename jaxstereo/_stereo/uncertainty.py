@@ -19,7 +19,6 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import ndimage
 
 from .._calibration.rig import Rig
 from .._geometry.camera import Camera
@@ -159,18 +158,31 @@ def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.n
     the vertical std (k,) float32 metres.
     """
     origin, step = table["origin"], table["step"]
-    coords = np.stack([(v - origin[0]) / step[0], (u - origin[1]) / step[1], (disparity - origin[2]) / step[2]])
-    cov = np.zeros((len(v), 6))
-    for cls in (0, 1):
-        sel = np.nonzero(submerged == bool(cls))[0]
-        if sel.size:
-            for k in range(6):
-                cov[sel, k] = ndimage.map_coordinates(table["table"][cls, ..., k], coords[:, sel], order=1,
-                                                      mode="nearest")
+    coords = np.stack([(v - origin[0]) / step[0], (u - origin[1]) / step[1], (disparity - origin[2]) / step[2]], -1)
+    cov = np.array(_trilinear(jnp.asarray(table["table"]), jnp.asarray(coords), jnp.asarray(submerged.astype(np.int32))))
     j = dpoint_dd * sigma_d[:, None]
     cov += np.stack([j[:, 0] ** 2, j[:, 1] ** 2, j[:, 2] ** 2, j[:, 0] * j[:, 1], j[:, 0] * j[:, 2],
                      j[:, 1] * j[:, 2]], axis=-1)
     return cov.astype(np.float32), np.abs(j[:, 2]).astype(np.float32)
+
+
+@jax.jit
+def _trilinear(table, coords, cls):
+    """Trilinear interpolation of `table` (2, n0, n1, n2, c) at fractional indices `coords` (k, 3) of the
+    sub-table `cls` (k,) (clamped at the edges): (k, c). All channels share one set of corners and weights."""
+    shape = jnp.asarray(table.shape[1:4])
+    x = jnp.clip(coords, 0.0, shape - 1.0)
+    i0 = jnp.minimum(jnp.floor(x).astype(jnp.int32), jnp.maximum(shape - 2, 0))
+    t = x - i0
+    out = jnp.zeros((coords.shape[0], table.shape[-1]), table.dtype)
+    for corner in range(8):
+        bits = [(corner >> axis) & 1 for axis in range(3)]
+        index = i0 + jnp.asarray(bits)
+        weight = jnp.ones(coords.shape[0], table.dtype)
+        for axis, bit in enumerate(bits):
+            weight = weight * (t[:, axis] if bit else 1.0 - t[:, axis])
+        out = out + weight[:, None] * table[cls, index[:, 0], index[:, 1], index[:, 2]]
+    return out
 
 
 def covariance_matrices(cov6: np.ndarray) -> np.ndarray:

@@ -1,0 +1,172 @@
+"""Uncertainty propagation: the JAX Jacobians against finite differences of an independent numpy reference,
+the disparity's standard deviation against the scatter it predicts, and a survey's error bars end to end."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from jaxstereo import Camera, Interface, Pose, Rig, reconstruct
+from jaxstereo._stereo import matching
+from jaxstereo._stereo.matching import refine_disparity
+from jaxstereo._stereo.reconstruct import _triangulate_chunk, _triangulate_model
+from jaxstereo._stereo.rectify import rectified_to_real, rectify
+from jaxstereo._stereo.uncertainty import SHARED_PARAMETERS, _shared_jacobians, covariance_matrices
+from jaxstereo._synthetic.flume_rig import flume_rig, realistic_rig_spec
+
+LEVEL = 0.18
+
+
+@pytest.fixture(scope="module")
+def wet_pair():
+    """A realistic rig (turned cameras, a 35 mm lens's distortion) and matches of emerged and submerged points."""
+    with_x64 = __import__("jax").enable_x64(True)
+    with with_x64:
+        left, right = flume_rig(realistic_rig_spec(water_level_m=LEVEL, image_size=(1200, 800)))
+        interface = Interface(LEVEL)
+        rect = rectify(left, right, interface, "water")
+        rng = np.random.default_rng(3)
+        rl = np.stack([rng.uniform(100, 1100, 40), rng.uniform(100, 700, 40)], -1)
+        # disparities for points from 10 cm below to 15 cm above the water (emerged and submerged alike)
+        d = rng.uniform(0.0, 1.0, 40)
+        lo, hi = _disparity_span(rect, left, right, interface, rl)
+        rr = np.stack([rl[:, 0] - (lo + d * (hi - lo)), rl[:, 1]], -1)
+    return left, right, interface, rect, rl, rr
+
+
+def _disparity_span(rect, left, right, interface, rl):
+    from jaxstereo._stereo.epipolar import disparity_bounds
+
+    return disparity_bounds(rect, left, right, interface, LEVEL - 0.10, LEVEL + 0.15)
+
+
+def test_disparity_jacobian_matches_finite_differences(x64, wet_pair):
+    left, right, interface, rect, rl, rr = wet_pair
+    points, _, submerged, ok, _, jac = _triangulate_chunk(rect, left, right, interface, "exact", True,
+                                                          jnp.asarray(rl), jnp.asarray(rr))
+    assert np.all(ok) and 0 < np.sum(submerged) < len(rl)  # both kinds of point are checked
+    h = 1e-4
+    step = np.array([[h, 0.0]])
+    plus = np.asarray(_triangulate_model(rect, left, right, interface, "exact", jnp.asarray(rl), jnp.asarray(rr - step))[0])
+    minus = np.asarray(_triangulate_model(rect, left, right, interface, "exact", jnp.asarray(rl), jnp.asarray(rr + step))[0])
+    fd = (plus - minus) / (2 * h)
+    np.testing.assert_allclose(np.asarray(jac), fd, rtol=1e-5, atol=1e-9)
+    assert np.all(np.abs(np.asarray(jac)[:, 2]) > 1e-4)  # millimetres per pixel: a real derivative
+
+
+def _reference_points(theta, left: Camera, right: Camera, interface: Interface, raw_l, raw_r, submerged):
+    """numpy reference: the same raw pixels seen by cameras moved by `theta` (SHARED_PARAMETERS), backprojected,
+    refracted by Snell's law at the moved water level and triangulated by the rays' midpoint."""
+    eps, frame = theta[12], Rotation.from_rotvec(theta[0:3]).as_matrix()
+
+    def moved(cam: Camera, pose_delta):
+        R, c = np.asarray(cam.pose.R), np.asarray(cam.pose.center) * (1 + eps)
+        R = R @ Rotation.from_rotvec(pose_delta[:3]).as_matrix()
+        c = c + pose_delta[3:]
+        R, c = R @ frame.T, frame @ c + theta[3:6]
+        return Camera(float(cam.fx) * (1 + eps), float(cam.fy) * (1 + eps), float(cam.cx), float(cam.cy), cam.dist,
+                      Pose.from_center(R, c), cam.image_size)
+
+    rays = []
+    for cam, raw, delta in ((left, raw_l, np.zeros(6)), (right, raw_r, theta[6:12])):
+        o, d = (np.asarray(a) for a in moved(cam, delta).backproject(raw))
+        if submerged:
+            s = (interface.level + theta[13] - o[:, 2]) / d[:, 2]
+            o = o + s[:, None] * d
+            cos_i = -d[:, 2:3]  # rays point down, the normal up
+            mu = float(interface.n_air) / float(interface.n_water)
+            cos_t = np.sqrt(1 - mu**2 * (1 - cos_i**2))
+            d = mu * d + (mu * cos_i - cos_t) * np.array([0.0, 0.0, 1.0])
+            d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        rays.append((o, d))
+    (o1, d1), (o2, d2) = rays
+    w0 = o1 - o2
+    a, b, c = (d1 * d1).sum(1), (d1 * d2).sum(1), (d2 * d2).sum(1)
+    dd, e = (d1 * w0).sum(1), (d2 * w0).sum(1)
+    den = a * c - b * b
+    s, t = (b * e - c * dd) / den, (a * e - b * dd) / den
+    return 0.5 * (o1 + s[:, None] * d1 + o2 + t[:, None] * d2)
+
+
+def test_shared_jacobians_match_finite_differences_of_a_numpy_reference(x64, wet_pair):
+    left, right, interface, rect, rl, rr = wet_pair
+    raw_l = np.asarray(rectified_to_real(rect, left, 0, jnp.asarray(rl))[0])
+    raw_r = np.asarray(rectified_to_real(rect, right, 1, jnp.asarray(rr))[0])
+    J = np.asarray(_shared_jacobians(rect, left, right, interface, jnp.asarray(rl), jnp.asarray(rr)))
+    steps = [1e-6] * 3 + [1e-6] * 3 + [1e-7] * 3 + [1e-7] * 3 + [1e-6, 1e-6]
+    for cls in (0, 1):
+        for k, name in enumerate(SHARED_PARAMETERS):
+            delta = np.zeros(14)
+            delta[k] = steps[k]
+            fd = (_reference_points(delta, left, right, interface, raw_l, raw_r, cls)
+                  - _reference_points(-delta, left, right, interface, raw_l, raw_r, cls)) / (2 * steps[k])
+            scale = np.abs(fd).max()
+            if cls == 0 and name == "water level (m)":
+                assert np.all(J[cls, :, :, k] == 0)  # the level does not move emerged points
+                continue
+            # The focal length's reference scales the distorted pixels (as the calibration does); the table
+            # scales the undistorted ray: equal up to the lens's distortion, a few percent at the corners.
+            tol = 0.05 if name.startswith("focal") else 2e-3
+            np.testing.assert_allclose(J[cls, :, :, k], fd, atol=tol * scale, err_msg=f"{name}, class {cls}")
+
+
+def test_covariance_matrices_unpacks_the_six_terms():
+    cov = covariance_matrices(np.array([[1.0, 2.0, 3.0, 0.1, 0.2, 0.3]]))[0]
+    np.testing.assert_array_equal(cov, [[1.0, 0.1, 0.2], [0.1, 2.0, 0.3], [0.2, 0.3, 3.0]])
+
+
+def test_disparity_sigma_predicts_the_scatter_under_independent_noise(monkeypatch):
+    """With independent pixel noise (the least-squares formula's assumption) and the calibration factors set to
+    one, the predicted std matches the disparities' measured scatter."""
+    monkeypatch.setattr(matching, "MATCH_NOISE_SCALE", 1.0)
+    rng = np.random.default_rng(0)
+    h, w, shift = 480, 800, 12
+    texture = cv2_blur(rng.uniform(0, 255, (h, w + shift)), 1.5)
+    right_clean = texture[:, shift:]
+    left_clean = texture[:, :w]
+    # x_right = x_left - d: left pixel u sees the texture at u, right pixel u - d sees texture at u - d + shift
+    rows = []
+    for noise in (2.0, 6.0):
+        left = np.clip(left_clean + rng.normal(0, noise, left_clean.shape), 0, 255).astype(np.uint8)
+        right = np.clip(right_clean + rng.normal(0, noise, right_clean.shape), 0, 255).astype(np.uint8)
+        start = np.full((h, w), float(shift), np.float32)  # SGBM's whole pixel: one linearisation
+        d, sigma = refine_disparity(left, right, start, window=31)
+        inner = np.s_[40:-40, 60:-60]
+        err = d[inner] - shift
+        rows.append((np.std(err), np.median(sigma[inner])))
+    for measured, predicted in rows:
+        assert 0.85 <= predicted / measured <= 1.3, rows  # 0.99 and 1.03 measured
+    assert rows[1][0] > 2 * rows[0][0]  # more noise, more scatter, and the prediction follows it
+
+
+def cv2_blur(image, sigma):
+    import cv2
+
+    return cv2.GaussianBlur(image, (0, 0), sigma)
+
+
+def test_survey_carries_error_bars_that_grow_under_water(x64):
+    """A flat textured floor half under water, on a realistic rig: every point has a covariance; the vertical
+    std from matching is larger under water (refraction stretches depth) and covers the true errors."""
+    from jaxstereo import Heightfield, render_view
+    from jaxstereo._synthetic.flume_rig import jpeg
+
+    left, right = flume_rig(realistic_rig_spec(water_level_m=0.1, image_size=(800, 540)))
+    spacing = 0.002
+    ny, nx = 700, 900
+    x = -0.9 + spacing * np.arange(nx)
+    X = np.broadcast_to(x, (ny, nx))
+    z = np.where(X < 0, 0.05, 0.15)  # two flat levels: one under the water, one above it
+    rng = np.random.default_rng(1)
+    albedo = cv2_blur(rng.uniform(0.15, 0.85, (ny, nx, 3)), 0.7)
+    field = Heightfield(z, albedo, -0.9, -0.7, spacing)
+    images = [jpeg(render_view(cam, field, Interface(0.1)).image) for cam in (left, right)]
+    survey, summary = reconstruct(images[0], images[1], Rig(left, right), 0.1)
+    assert survey.cov.shape == (len(survey), 6) and np.all(survey.cov[:, 2] > 0)
+    under, over = survey.submerged, ~survey.submerged
+    assert np.median(survey.sigma_z_match[under]) > np.median(survey.sigma_z_match[over])
+    truth = np.where(survey.points[:, 0] < 0, 0.05, 0.15)
+    inside = np.abs(survey.points[:, 0]) > 0.03  # away from the step
+    err = survey.points[inside, 2] - truth[inside]
+    assert np.mean(np.abs(err) <= 2 * survey.sigma_z[inside]) >= 0.85
+    assert summary["median_sigma_z_submerged_mm"] > summary["median_sigma_z_emerged_mm"]
