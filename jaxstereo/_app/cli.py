@@ -23,11 +23,12 @@ def _cmd_incidence_report(args) -> int:
         focal_px=args.focal_px,
         n_air=args.n_air,
         n_water=args.n_water,
+        disparity_noise_px=args.disparity_noise,
     )
     if args.step_deg <= 0 or args.max_deg <= 0:
         raise JaxStereoError("--max-deg and --step-deg must be positive")
     angles = np.arange(0.0, args.max_deg + 1e-9, args.step_deg)
-    report = incidence_report(angles, rig)
+    report = incidence_report(angles, rig, args.sigma_depths)
     print(report.to_markdown())
     for column, threshold, unit in (("angle_error_deg", 0.5, "deg"), ("pixel_error_px", 1.0, "px"),
                                     ("error_3d_mm", 1.0, "mm")):

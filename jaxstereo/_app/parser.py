@@ -70,6 +70,10 @@ def _add_incidence_report(sub) -> None:
     p.add_argument("--focal-px", type=float, default=3935.0, help="focal length, pixels (default 3935)")
     p.add_argument("--n-air", type=float, default=1.0, help="refractive index of air (default 1.000)")
     p.add_argument("--n-water", type=float, default=1.333, help="refractive index of water (default 1.333)")
+    p.add_argument("--disparity-noise", type=float, default=0.15, help="the matching's disparity std, px, for the "
+                   "predicted sigma_z (default 0.15; reconstruct's summary gives yours as median_sigma_disparity_px)")
+    p.add_argument("--sigma-depths", type=float, nargs="+", metavar="M", help="depths below the water, m, for the "
+                   "predicted sigma_z (default: a third, two thirds and all of --depth)")
     p.add_argument("--max-deg", type=float, default=40.0, help="largest incidence angle, degrees (default 40)")
     p.add_argument("--step-deg", type=float, default=5.0, help="step between angles, degrees (default 5)")
     p.add_argument("-o", "--output", default="incidence-report.png", help="PNG figure to write")

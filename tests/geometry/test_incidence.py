@@ -35,3 +35,17 @@ def test_three_d_error_vanishes_for_a_shallow_point():
     shallow = js.incidence_report([20.0], js.IncidenceRig(depth_m=0.003))
     assert shallow.error_3d_mm[0] < 0.02 * deep.error_3d_mm[0]
     assert np.all(np.isfinite(deep.error_3d_mm))
+
+
+def test_predicted_sigma_z_matches_the_paraxial_formula_straight_down():
+    """Straight down, a point at depth D appears at D / n (paraxial), at Z = H + D / n from the cameras, so a
+    disparity error s moves it by n Z^2 / (f B) s vertically; off-axis the prediction grows."""
+    rig = js.IncidenceRig(disparity_noise_px=0.2)
+    report = js.incidence_report([0.0, 30.0], rig, sigma_depths_m=[0.1, 0.3])
+    n = rig.n_water / rig.n_air
+    for k, depth in enumerate((0.1, 0.3)):
+        z = rig.height_m + depth / n
+        expected = 1e3 * n * z**2 / (rig.focal_px * rig.baseline_m) * 0.2
+        assert report.sigma_z_mm[k, 0] == pytest.approx(expected, rel=0.01)
+        assert report.sigma_z_mm[k, 1] > 1.05 * report.sigma_z_mm[k, 0]
+    assert "sigma_z at 0.3 m (mm)" in report.to_markdown()
