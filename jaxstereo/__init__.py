@@ -84,6 +84,7 @@ from ._surface.grid import (
     fill_holes as fill_holes,
     grid_delaunay as grid_delaunay,
     grid_median as grid_median,
+    grid_survey as grid_survey,
     load_dem as load_dem,
     load_surface as load_surface,
     save_dem as save_dem,

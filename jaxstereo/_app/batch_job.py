@@ -123,7 +123,7 @@ def run_pair(job: PairJob) -> dict:
 def _process_pair(job: PairJob) -> dict:
     from .._stereo.reconstruct import ReconstructOptions, reconstruct
     from .._stereo.survey import plot_survey_preview, save_survey
-    from .._surface.grid import fill_holes, grid_median, load_dem, save_dem
+    from .._surface.grid import fill_holes, grid_survey, load_dem, save_dem
     from .images import check_pair, read_image
 
     pair = job.pair
@@ -154,7 +154,7 @@ def _process_pair(job: PairJob) -> dict:
     if job.reference_dir is not None and (job.reference_dir / RESULT).is_file():
         reference_dem = load_dem(job.reference_dir / "dem.npz")
     axes = (reference_dem.x, reference_dem.y) if reference_dem is not None else (None, None)
-    dem = fill_holes(grid_median(survey.points, job.spacing, *axes), job.max_gap)
+    dem = fill_holes(grid_survey(survey, job.spacing, *axes), job.max_gap)
     save_dem(dem, out / "dem.npz")
     lap("grid (s)")
     row = {"status": "ok", "points": len(survey), "submerged_fraction": round(info["submerged_fraction"], 4),
@@ -182,21 +182,22 @@ def _damage_row(d, reference_dem, dem, out: Path, lap) -> dict:
         ACTIVE_ZONE_DN50,
         _column_mean,
         fit_design_slope,
-        stretch_damage,
         write_damage_report,
     )
+    from .._surface.damage_uncertainty import stretch_damage_with_sigma
 
     cot = parse_slope(d.slope)
     origin = d.slope_origin
     if d.fit_slope:
         origin, _ = fit_design_slope(reference_dem.x, _column_mean(reference_dem.z), cot, d.swl, d.dn50)
-    result = stretch_damage(reference_dem, dem, d.dn50, cot, d.swl, origin, d.profile_spacing,
-                            stretch=d.stretch, active_zone_dn50=d.active_zone or ACTIVE_ZONE_DN50)
-    lap("damage (s)")
-    write_damage_report(result, reference_dem, dem, out / "damage")
+    result, sigma = stretch_damage_with_sigma(reference_dem, dem, d.dn50, cot, d.swl, origin, d.profile_spacing,
+                                              stretch=d.stretch, active_zone_dn50=d.active_zone or ACTIVE_ZONE_DN50)
+    lap("damage and its error bars (s)")
+    write_damage_report(result, reference_dem, dem, out / "damage", sigma)
     lap("damage report and figures (s)")
     a = result.averaged
-    return dict(A_e_m2=a.A_e, L_e_m=a.L_e, d_e_m=a.d_e, S=a.S, S_max=result.S_max, E2D=a.E2D,
+    s_sigma = sigma.sigma["S"] if sigma is not None else None
+    return dict(A_e_m2=a.A_e, L_e_m=a.L_e, d_e_m=a.d_e, S=a.S, S_sigma=s_sigma, S_max=result.S_max, E2D=a.E2D,
                 E3D=result.volumes.E3D, eroded_volume_m3=result.volumes.eroded_m3,
                 accreted_volume_m3=result.volumes.accreted_m3, damage_level=result.level,
                 stretch_y_m=f"{result.stretch[0]:.3f} to {result.stretch[1]:.3f}"

@@ -218,7 +218,7 @@ def _print_sigma(summary: dict) -> None:
 
 def _cmd_grid(args) -> int:
     from .._stereo.survey import load_survey
-    from .._surface.grid import fill_holes, grid_delaunay, grid_median, save_dem
+    from .._surface.grid import SIGMA_LAYERS, fill_holes, grid_delaunay, grid_survey, save_dem
 
     survey = load_survey(args.survey)
     if len(survey) == 0:
@@ -228,17 +228,28 @@ def _cmd_grid(args) -> int:
     if args.method == "delaunay":
         dem = grid_delaunay(survey.points, args.spacing)
     else:
-        dem = fill_holes(grid_median(survey.points, args.spacing), args.max_gap)
+        dem = fill_holes(grid_survey(survey, args.spacing), args.max_gap)
     save_dem(dem, args.output)
     filled = float(np.isfinite(dem.z).mean()) if dem.z.size else 0.0
     print(f"grid: {len(survey)} points -> {dem.z.shape[1]} x {dem.z.shape[0]} cells of {args.spacing:g} m "
-          f"({100 * filled:.0f}% with data), method {args.method}\nDEM: {args.output}")
+          f"({100 * filled:.0f}% with data), method {args.method}")
+    if dem.has_sigma:
+        ok = np.isfinite(dem.z)
+        parts = ", ".join(f"{key.removeprefix('sigma_')} {1e3 * np.median(getattr(dem, key)[ok]):.2f}"
+                          for key in SIGMA_LAYERS)
+        print(f"  sigma layers: median total {1e3 * np.median(dem.sigma[ok]):.2f} mm ({parts} mm; matching "
+              f"errors correlated over {1e3 * dem.correlation_m:.0f} mm)")
+    else:
+        print("  no sigma layer: " + ("Delaunay gridding interpolates, it does not average" if args.method == "delaunay"
+                                      else "the survey has no error bars (made before they existed?)"))
+    print(f"DEM: {args.output}")
     return 0
 
 
 def _cmd_damage(args) -> int:
     from .._surface.damage import parse_slope
-    from .._surface.damage_report import ACTIVE_ZONE_DN50, stretch_damage, write_damage_report
+    from .._surface.damage_report import ACTIVE_ZONE_DN50, write_damage_report
+    from .._surface.damage_uncertainty import stretch_damage_with_sigma
     from .._surface.grid import load_surface
 
     if not (args.dn50 > 0):
@@ -250,23 +261,38 @@ def _cmd_damage(args) -> int:
     if not np.any(np.isfinite(before.z) & np.isfinite(after.z)):
         raise JaxStereoError(f"{args.before!r} and {args.after!r} do not overlap: are they in the same world frame?")
     origin = _design_slope_origin(args, cot, before)
-    result = stretch_damage(before, after, args.dn50, cot, args.swl, origin, args.profile_spacing,
-                            stretch=tuple(args.stretch) if args.stretch else None,
-                            active_zone_dn50=tuple(args.active_zone) if args.active_zone else ACTIVE_ZONE_DN50)
-    paths = write_damage_report(result, before, after, args.output)
+    result, sigma = stretch_damage_with_sigma(
+        before, after, args.dn50, cot, args.swl, origin, args.profile_spacing,
+        stretch=tuple(args.stretch) if args.stretch else None,
+        active_zone_dn50=tuple(args.active_zone) if args.active_zone else ACTIVE_ZONE_DN50)
+    paths = write_damage_report(result, before, after, args.output, sigma)
     a = result.averaged
+
+    def pm(value: float, key: str, scale: float = 1.0, digits: int = 2) -> str:
+        """value +- sigma (sigma when known), both times `scale`."""
+        s = sigma.sigma.get(key) if sigma is not None else None
+        return f"{value * scale:.{digits}f}" + ("" if s is None else f" +- {s * scale:.{digits}f}")
+
     width = "whole surveyed width" if result.whole_width else "tested stretch"
     print(f"damage: Dn50 {args.dn50:g} m, slope 1:{cot:g}, SWL {args.swl:g} m, {len(result.profiles)} profiles")
     print(f"  {width:<18} y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m")
     print(f"  active zone        z {result.active_zone[0]:.3f} to {result.active_zone[1]:.3f} m on the design slope")
-    print(f"  averaged profile   A_e {a.A_e:.5f} m2  L_e {a.L_e:.3f} m  d_e {a.d_e:.4f} m  S {a.S:.2f}  E2D {a.E2D:.2f}")
-    print(f"  over the stretch   S mean {result.S_mean:.2f} (S > {result.threshold:g})  S max {result.S_max:.2f}  "
-          f"L_e max {result.L_e_max:.3f} m  d_e max {result.d_e_max:.4f} m")
+    print(f"  averaged profile   A_e {pm(a.A_e, 'A_e_m2', 1e4)} cm2  L_e {pm(a.L_e, 'L_e_m', 1e3, 0)} mm  "
+          f"d_e {pm(a.d_e, 'd_e_m', 1e3, 1)} mm  S {pm(a.S, 'S')}  E2D {pm(a.E2D, 'E2D')}")
+    print(f"  over the stretch   S mean {pm(result.S_mean, 'S_mean_above_threshold')} (S > {result.threshold:g})  "
+          f"S max {pm(result.S_max, 'S_max')}  L_e max {pm(result.L_e_max, 'L_e_max_m', 1e3, 0)} mm  "
+          f"d_e max {pm(result.d_e_max, 'd_e_max_m', 1e3, 1)} mm")
     e3d = "not measurable (no Dn50 circle covered by both surveys)" if result.volumes.E3D is None else \
-        f"{result.volumes.E3D:.2f}"
-    print(f"  3-D                eroded {result.volumes.eroded_m3 * 1e6:.0f} cm3  accreted "
-          f"{result.volumes.accreted_m3 * 1e6:.0f} cm3  E3D {e3d}")
-    print(f"  damage level       {result.level} (S {a.S:.2f} of the averaged profile, slope 1:{cot:g})")
+        pm(result.volumes.E3D, "E3D")
+    print(f"  3-D                eroded {pm(result.volumes.eroded_m3, 'eroded_volume_m3', 1e6, 0)} cm3  accreted "
+          f"{pm(result.volumes.accreted_m3, 'accreted_volume_m3', 1e6, 0)} cm3  E3D {e3d}")
+    print(f"  damage level       {result.level} (S {pm(a.S, 'S')} of the averaged profile, slope 1:{cot:g})")
+    if sigma is None:
+        print("  no error bars: a surface has no sigma layers (surveys made before jaxstereo wrote them?)")
+    else:
+        print(f"  error bars         from {sigma.draws} draws of the surveys' errors; calibration "
+              f"{'common to' if sigma.shared_calibration else 'independent in'} both, water level "
+              f"{'common to' if sigma.shared_level else 'independent in'} both")
     for y, why in result.skipped:
         print(f"  profile y {y:+.3f} m not computed: {why}")
     print("report: " + ", ".join(str(p) for p in paths))

@@ -23,7 +23,9 @@ class Survey:
     covariance [xx, yy, zz, xy, xz, yz] m^2 (world axes; matching and shared errors together, see
     `jaxstereo._stereo.uncertainty`), None when not known (surveys written before it existed);
     `sigma_z_match` (N,) the vertical std (metres) from matching alone, independent between points beyond
-    the matching window (the rest of `sigma_z` is shared by every point of the survey), or None.
+    the matching window, and `sigma_z_level` (N,) from the water level alone, or None; the rest of `sigma_z`
+    (`sigma_z_calibration`) comes from the calibration. The level's and the calibration's parts are shared by
+    every point of the survey.
     """
 
     points: np.ndarray
@@ -35,6 +37,7 @@ class Survey:
     water_level: float
     cov: np.ndarray | None = None
     sigma_z_match: np.ndarray | None = None
+    sigma_z_level: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -51,6 +54,14 @@ class Survey:
             return None
         return np.sqrt(np.maximum(self.cov[:, 2].astype(np.float64) - self.sigma_z_match.astype(np.float64) ** 2, 0.0))
 
+    @property
+    def sigma_z_calibration(self) -> np.ndarray | None:
+        """The part of `sigma_z` (N,) metres that the calibration gives (shared, the level's part left out)."""
+        shared = self.sigma_z_shared
+        if shared is None or self.sigma_z_level is None:
+            return None
+        return np.sqrt(np.maximum(shared**2 - self.sigma_z_level.astype(np.float64) ** 2, 0.0))
+
 
 def save_survey(survey: Survey, path: PathLike) -> None:
     """Write the survey `.npz` atomically."""
@@ -60,8 +71,9 @@ def save_survey(survey: Survey, path: PathLike) -> None:
     extra = {}
     if survey.cov is not None:
         extra["cov"] = survey.cov.astype(np.float32)
-    if survey.sigma_z_match is not None:
-        extra["sigma_z_match"] = survey.sigma_z_match.astype(np.float32)
+    for key in ("sigma_z_match", "sigma_z_level"):
+        if getattr(survey, key) is not None:
+            extra[key] = getattr(survey, key).astype(np.float32)
     with atomic_path(path) as tmp:
         np.savez(tmp, points=survey.points.astype(np.float64), colors=survey.colors.astype(np.uint8),
                  pixels=survey.pixels.astype(np.float32), submerged=survey.submerged.astype(bool),
@@ -88,10 +100,12 @@ def survey_from_fields(fields: dict, path) -> Survey:
     if bad:
         raise JaxStereoError(f"survey {str(path)!r} holds {bad} point(s) with NaN or infinite coordinates")
     cov = _optional(fields, "cov", (points.shape[0], 6), path)
-    sigma_z_match = _optional(fields, "sigma_z_match", (points.shape[0],), path)
+    sigma_z_match, sigma_z_level = (_optional(fields, key, (points.shape[0],), path)
+                                    for key in ("sigma_z_match", "sigma_z_level"))
     return Survey(points, np.asarray(fields["colors"]), np.asarray(fields["pixels"]),
                   np.asarray(fields["submerged"], dtype=bool), str(fields.get("rig", "")),
-                  str(fields.get("model", "")), float(fields.get("water_level", np.nan)), cov, sigma_z_match)
+                  str(fields.get("model", "")), float(fields.get("water_level", np.nan)), cov, sigma_z_match,
+                  sigma_z_level)
 
 
 def _optional(fields: dict, key: str, shape: tuple, path) -> np.ndarray | None:

@@ -35,6 +35,7 @@ SHARED_PARAMETERS = ("frame rotation x (rad)", "frame rotation y (rad)", "frame 
                      "focal length (relative)", "water level (m)")
 TABLE_STEP_PX = 48  # table spacing in u and v (pixels)
 TABLE_STEP_DISPARITY_PX = 8  # and in disparity
+MATCH_CORRELATION_PX = 31  # matches closer than the sub-pixel fit's window share most of it: their errors correlate
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,8 +128,8 @@ def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface 
     """The shared errors' covariance of a point (3, 3), for emerged and submerged points, on a table over the
     left rectified pixel (u, v) and the disparity (every `TABLE_STEP_PX` and `TABLE_STEP_DISPARITY_PX`).
 
-    **Returns:** `{"table": (2, nv, nu, nd, 6) [xx, yy, zz, xy, xz, yz] m^2, "origin": (v0, u0, d0),
-    "step": (sv, su, sd)}` for `point_covariances`.
+    **Returns:** `{"table": (2, nv, nu, nd, 7) [xx, yy, zz, xy, xz, yz, zz from the water level alone] m^2,
+    "origin": (v0, u0, d0), "step": (sv, su, sd)}` for `point_covariances`.
     """
     w, h = image_size
     us = np.arange(0, w - 1 + TABLE_STEP_PX, TABLE_STEP_PX, dtype=np.float64)
@@ -140,30 +141,34 @@ def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface 
     rr = jnp.asarray(np.stack([U.ravel() - D.ravel(), V.ravel()], axis=-1))
     J = np.asarray(_shared_jacobians_jit(rect, rig.left, rig.right, interface, rl, rr))
     cov = np.einsum("cnik,kl,cnjl->cnij", J, shared.cov, J)
-    six = np.stack([cov[..., 0, 0], cov[..., 1, 1], cov[..., 2, 2], cov[..., 0, 1], cov[..., 0, 2], cov[..., 1, 2]],
-                   axis=-1)
-    six = np.nan_to_num(six, nan=0.0, posinf=0.0, neginf=0.0)
-    return {"table": six.reshape((2,) + V.shape + (6,)), "origin": (0.0, 0.0, float(search[0])),
+    level_zz = J[..., 2, 13] ** 2 * shared.cov[13, 13]
+    seven = np.stack([cov[..., 0, 0], cov[..., 1, 1], cov[..., 2, 2], cov[..., 0, 1], cov[..., 0, 2], cov[..., 1, 2],
+                      level_zz], axis=-1)
+    seven = np.nan_to_num(seven, nan=0.0, posinf=0.0, neginf=0.0)
+    return {"table": seven.reshape((2,) + V.shape + (7,)), "origin": (0.0, 0.0, float(search[0])),
             "step": (float(TABLE_STEP_PX), float(TABLE_STEP_PX), float(TABLE_STEP_DISPARITY_PX))}
 
 
 def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.ndarray, submerged: np.ndarray,
-                      sigma_d: np.ndarray, dpoint_dd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                      sigma_d: np.ndarray, dpoint_dd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each point's covariance: shared (interpolated from `table`) plus matching (`sigma_d^2 j j^T`).
 
     **Arguments:** the matches' left rectified rows `v`, columns `u`, disparities (k,) pixels; `submerged`
     (k,) bool; the disparities' std `sigma_d` (k,) pixels; `dpoint_dd` (k, 3) metres per pixel of disparity.
 
-    **Returns:** `(cov, sigma_z_match)`: (k, 6) float32 [xx, yy, zz, xy, xz, yz] m^2, and the matching part of
-    the vertical std (k,) float32 metres.
+    **Returns:** `(cov, sigma_z_match, sigma_z_level)`: (k, 6) float32 [xx, yy, zz, xy, xz, yz] m^2, and the
+    matching's and the water level's parts of the vertical std (k,) float32 metres.
     """
     origin, step = table["origin"], table["step"]
     coords = np.stack([(v - origin[0]) / step[0], (u - origin[1]) / step[1], (disparity - origin[2]) / step[2]], -1)
-    cov = np.array(_trilinear(jnp.asarray(table["table"]), jnp.asarray(coords), jnp.asarray(submerged.astype(np.int32))))
+    seven = np.array(_trilinear(jnp.asarray(table["table"]), jnp.asarray(coords),
+                                jnp.asarray(submerged.astype(np.int32))))
+    cov, level_zz = seven[:, :6], seven[:, 6]
     j = dpoint_dd * sigma_d[:, None]
     cov += np.stack([j[:, 0] ** 2, j[:, 1] ** 2, j[:, 2] ** 2, j[:, 0] * j[:, 1], j[:, 0] * j[:, 2],
                      j[:, 1] * j[:, 2]], axis=-1)
-    return cov.astype(np.float32), np.abs(j[:, 2]).astype(np.float32)
+    return (cov.astype(np.float32), np.abs(j[:, 2]).astype(np.float32),
+            np.sqrt(np.maximum(level_zz, 0.0)).astype(np.float32))
 
 
 @jax.jit
@@ -189,3 +194,33 @@ def covariance_matrices(cov6: np.ndarray) -> np.ndarray:
     """(n, 3, 3) symmetric matrices from (n, 6) [xx, yy, zz, xy, xz, yz]."""
     xx, yy, zz, xy, xz, yz = np.moveaxis(np.asarray(cov6, dtype=np.float64), -1, 0)
     return np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1), np.stack([xz, yz, zz], -1)], -2)
+
+
+def perturbed_rig(rig: Rig, theta: np.ndarray) -> Rig:
+    """The rig moved by an error `theta` (14,) of the shared parameters (`SHARED_PARAMETERS`; the water level's
+    entry is not used): both focal lengths scaled by (1 + eps) and the cameras moved eps further from the world
+    origin, the right camera's pose retracted (`Pose.retract`), and both cameras moved with the world frame
+    (`X -> exp(w) X + v`). The same model `shared_covariance_table` differentiates; for simulating calibration
+    errors drawn from a covariance."""
+    from .._geometry.pose import Pose
+
+    theta = np.asarray(theta, dtype=np.float64)
+    eps = theta[12]
+    frame = np.asarray(so3_exp(theta[0:3]))
+    cameras = []
+    for cam, delta in ((rig.left, np.zeros(6)), (rig.right, theta[6:12])):
+        R = np.asarray(cam.pose.R) @ np.asarray(so3_exp(delta[:3]))
+        center = np.asarray(cam.pose.center) * (1.0 + eps) + delta[3:]
+        R, center = R @ frame.T, frame @ center + theta[3:6]
+        moved = Camera(float(cam.fx) * (1 + eps), float(cam.fy) * (1 + eps), float(cam.cx), float(cam.cy), cam.dist,
+                       Pose.from_center(R, center), cam.image_size)
+        cameras.append(moved)
+    return Rig(cameras[0], cameras[1], rig.interface, rig.calibration)
+
+
+def calibration_record(cov: np.ndarray) -> dict:
+    """A rig's calibration record (`world_frame.frame_cov`, `world_frame.right_pose_cov`, `focal_std_rel`) holding
+    the shared parameters' covariance `cov` (14, 14): what `shared_errors` reads back."""
+    cov = np.asarray(cov, dtype=np.float64)
+    return {"world_frame": {"frame_cov": cov[:6, :6].tolist(), "right_pose_cov": cov[6:12, 6:12].tolist()},
+            "focal_std_rel": float(np.sqrt(cov[12, 12]))}

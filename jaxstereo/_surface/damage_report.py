@@ -250,35 +250,61 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
     )
 
 
-def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir: PathLike) -> list[Path]:
+def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir: PathLike, sigma=None) -> list[Path]:
     """Write `damage.json`, `profiles.csv`, `profile.png` (averaged profiles, eroded area shaded) and
-    `difference.png` (DEM difference map) to `out_dir`, each atomically. Returns the paths."""
+    `difference.png` (DEM difference map) to `out_dir`, each atomically. With `sigma` (a `DamageSigma`), every
+    figure's standard deviation goes beside it (`"sigma"` in the JSON, `S_sigma` in the CSV, value +- sigma and
+    2-sigma bands on the figure). Returns the paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / "damage.json", json.dumps(result.to_dict(), indent=2) + "\n")
-    write_text_atomic(out / "profiles.csv", _profiles_csv(result))
-    _plot_averaged_profile(result, before, after, out / "profile.png")
+    report = result.to_dict()
+    if sigma is not None:
+        report["sigma"] = sigma.sigma
+        report["sigma_from"] = {"draws": sigma.draws, "failed_draws": sigma.failed,
+                                "calibration_shared_by_both_surveys": sigma.shared_calibration,
+                                "water_level_shared_by_both_surveys": sigma.shared_level}
+        for row in report["profiles"]:
+            row["S_sigma"] = sigma.profile_S.get(round(row["y_m"], 6))
+    write_text_atomic(out / "damage.json", json.dumps(report, indent=2) + "\n")
+    write_text_atomic(out / "profiles.csv", _profiles_csv(result, sigma))
+    _plot_averaged_profile(result, before, after, out / "profile.png", sigma)
     _plot_difference(result, before, after, out / "difference.png")
     return [out / name for name in ("damage.json", "profiles.csv", "profile.png", "difference.png")]
 
 
-def _profiles_csv(result: StretchDamage) -> str:
-    """One row per profile (y order): its damage and level, or why it was not computed."""
+def _profiles_csv(result: StretchDamage, sigma=None) -> str:
+    """One row per profile (y order): its damage (S with its sigma when known) and level, or why it was not
+    computed."""
     buf = io.StringIO()
     writer = csv.writer(buf)
-    writer.writerow(["y_m", "A_e_m2", "L_e_m", "d_e_m", "S", "E2D", "damage_level", "note"])
+    writer.writerow(["y_m", "A_e_m2", "L_e_m", "d_e_m", "S", "S_sigma", "E2D", "damage_level", "note"])
     rows = [(y, p, "") for y, p in result.profiles] + [(y, None, why) for y, why in result.skipped]
     for y, p, why in sorted(rows, key=lambda r: r[0]):
         if p is None:
-            writer.writerow([f"{y:.4f}", "", "", "", "", "", "not computed", why])
+            writer.writerow([f"{y:.4f}", "", "", "", "", "", "", "not computed", why])
         else:
-            writer.writerow([f"{y:.4f}", f"{p.A_e:.6g}", f"{p.L_e:.5g}", f"{p.d_e:.5g}", f"{p.S:.4g}", f"{p.E2D:.4g}",
-                             damage_level(p.S, result.cot), ""])
+            s = sigma.profile_S.get(round(y, 6)) if sigma is not None else None
+            writer.writerow([f"{y:.4f}", f"{p.A_e:.6g}", f"{p.L_e:.5g}", f"{p.d_e:.5g}", f"{p.S:.4g}",
+                             "" if s is None else f"{s:.3g}", f"{p.E2D:.4g}", damage_level(p.S, result.cot), ""])
     return buf.getvalue()
 
 
-def _plot_averaged_profile(result: StretchDamage, before: DEM, after: DEM, path: Path) -> None:
-    """The stretch's averaged profiles before and after, the active zone, eroded and accreted areas shaded."""
+def averaged_profile_sigma(dem: DEM, rows: np.ndarray) -> np.ndarray | None:
+    """The vertical std (nx,) metres of a DEM's profile averaged over `rows`: the matching part averages over the
+    rows' independent stretches (one per `correlation_m`), the shared parts do not. None without sigma layers."""
+    if not dem.has_sigma:
+        return None
+    ok = np.isfinite(dem.z[rows])
+    n = ok.sum(axis=0)
+    independent = np.maximum(1.0, n * dem.spacing / dem.correlation_m) if np.isfinite(dem.correlation_m) else n
+    match = np.sqrt(_column_mean(np.where(ok, dem.sigma_match[rows] ** 2, np.nan)) / np.maximum(independent, 1.0))
+    shared = [_column_mean(np.where(ok, getattr(dem, key)[rows], np.nan)) for key in ("sigma_calibration", "sigma_level")]
+    return np.sqrt(match**2 + shared[0] ** 2 + shared[1] ** 2)
+
+
+def _plot_averaged_profile(result: StretchDamage, before: DEM, after: DEM, path: Path, sigma=None) -> None:
+    """The stretch's averaged profiles before and after (with 2-sigma bands when known), the active zone, eroded
+    and accreted areas shaded."""
     from .._app.plots import new_figure, save_figure
 
     in_stretch = (before.y >= result.stretch[0]) & (before.y <= result.stretch[1])
@@ -289,6 +315,12 @@ def _plot_averaged_profile(result: StretchDamage, before: DEM, after: DEM, path:
     width = "whole surveyed width" if result.whole_width else "tested stretch"
     ax.plot(before.x, zb, color="0.3", label=f"initial (averaged, {width})")
     ax.plot(before.x, za, color="tab:red", label=f"final (averaged, {width})")
+    rows = np.nonzero(in_stretch)[0]
+    for dem, z, colour in ((before, zb, "0.3"), (after, za, "tab:red")):
+        band = averaged_profile_sigma(dem, rows)
+        if band is not None:
+            ax.fill_between(before.x, z - 2 * band, z + 2 * band, color=colour, alpha=0.15, lw=0,
+                            label="2 sigma" if dem is before else None)
     x0, z0 = result.origin
     zone_x = [x0 + (z - z0) * result.cot for z in result.active_zone]
     ax.axvspan(*zone_x, color="0.85", zorder=0,
@@ -302,7 +334,8 @@ def _plot_averaged_profile(result: StretchDamage, before: DEM, after: DEM, path:
     ax.set_xlabel("x (m)")
     ax.set_ylabel("z (m)")
     e3d = "not measurable" if result.volumes.E3D is None else f"{result.volumes.E3D:.2f}"
-    ax.set_title(f"y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m ({width}): S = {result.averaged.S:.2f} "
+    s_text = f"{result.averaged.S:.2f}" + (f" +- {sigma.sigma['S']:.2f}" if sigma is not None else "")
+    ax.set_title(f"y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m ({width}): S = {s_text} "
                  f"({result.level} on 1:{result.cot:g}), E2D = {result.averaged.E2D:.2f}, E3D = {e3d}", fontsize=9)
     ax.legend(fontsize=8, loc="upper left")
     ax.grid(alpha=0.3)

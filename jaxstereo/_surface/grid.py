@@ -9,19 +9,48 @@ import numpy as np
 from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike
 
+SIGMA_LAYERS = ("sigma_match", "sigma_calibration", "sigma_level")
+
 
 @dataclasses.dataclass(frozen=True)
 class DEM:
     """A digital elevation model on a regular grid.
 
     **Fields:** `x` (nx,) and `y` (ny,) cell-centre coordinates, world metres; `z` (ny, nx) heights,
-    metres, NaN where no data; `spacing` metres.
+    metres, NaN where no data; `spacing` metres. From a survey with error bars (`grid_survey`), each cell's
+    vertical standard deviation (ny, nx) metres in three parts: `sigma_match` (matching; its errors are
+    correlated over `correlation_m` metres, independent beyond), `sigma_calibration` and `sigma_level`
+    (shared by every cell of the survey); None when unknown. `calibration_id` names the cameras the survey
+    was made with (a digest; surveys with the same one share the calibration's errors) and `water_level` its
+    level (metres, NaN when dry or unknown): empty / NaN when unknown.
     """
 
     x: np.ndarray
     y: np.ndarray
     z: np.ndarray
     spacing: float
+    sigma_match: np.ndarray | None = None
+    sigma_calibration: np.ndarray | None = None
+    sigma_level: np.ndarray | None = None
+    correlation_m: float = float("nan")
+    calibration_id: str = ""
+    water_level: float = float("nan")
+
+    @property
+    def has_sigma(self) -> bool:
+        return all(getattr(self, key) is not None for key in SIGMA_LAYERS)
+
+    @property
+    def sigma(self) -> np.ndarray | None:
+        """Each cell's total vertical standard deviation (ny, nx) metres, or None."""
+        if not self.has_sigma:
+            return None
+        return np.sqrt(self.sigma_match**2 + self.sigma_calibration**2 + self.sigma_level**2)
+
+    def with_layers(self, fn) -> "DEM":
+        """This DEM with `fn` applied to its height and to each of its sigma layers (ny, nx) -> (ny', nx')."""
+        layers = {key: None if getattr(self, key) is None else fn(getattr(self, key)) for key in SIGMA_LAYERS}
+        return dataclasses.replace(self, z=fn(self.z), **layers)
 
 
 def grid_extent(points: np.ndarray, spacing: float):
@@ -47,10 +76,7 @@ def grid_median(points: np.ndarray, spacing: float, x: np.ndarray | None = None,
         raise JaxStereoError(f"grid spacing must be positive, got {spacing}")
     if x is None or y is None:
         x, y = grid_extent(points, spacing)
-    ix = np.floor((points[:, 0] - x[0]) / spacing + 0.5).astype(np.int64)
-    iy = np.floor((points[:, 1] - y[0]) / spacing + 0.5).astype(np.int64)
-    inside = (ix >= 0) & (ix < x.size) & (iy >= 0) & (iy < y.size)
-    cell = iy[inside] * x.size + ix[inside]
+    cell, inside = _cell_index(points, x, y, spacing)
     z = points[inside, 2]
     order = np.argsort(z, kind="stable")
     order = order[np.argsort(cell[order], kind="stable")]
@@ -67,17 +93,90 @@ def grid_median(points: np.ndarray, spacing: float, x: np.ndarray | None = None,
 
 
 def fill_holes(dem: DEM, max_gap_m: float) -> DEM:
-    """Fill empty cells whose nearest data lies within `max_gap_m` (nearest value); larger holes stay NaN."""
+    """Fill empty cells whose nearest data lies within `max_gap_m` (nearest value, and the nearest cell's
+    sigma layers); larger holes stay NaN."""
     from scipy import ndimage
 
     empty = np.isnan(dem.z)
     if not empty.any() or max_gap_m <= 0:
         return dem
     dist, (ii, jj) = ndimage.distance_transform_edt(empty, return_indices=True)
-    z = dem.z.copy()
     fill = empty & (dist * dem.spacing <= max_gap_m)
-    z[fill] = dem.z[ii[fill], jj[fill]]
-    return DEM(dem.x, dem.y, z, dem.spacing)
+
+    def filled(layer):
+        out = layer.copy()
+        out[fill] = layer[ii[fill], jj[fill]]
+        return out
+
+    return dem.with_layers(filled)
+
+
+def grid_survey(survey, spacing: float, x: np.ndarray | None = None, y: np.ndarray | None = None,
+                min_count: int = 1) -> DEM:
+    """`grid_median` of a survey's points, with each cell's sigma layers when the survey has error bars.
+
+    A cell's matching std is the RMS of its points' `sigma_z_match` divided by the square root of the number of
+    independent matches in it (one per `MATCH_CORRELATION_PX`-wide square of pixels: neighbouring matches share
+    most of their fitting window, so their errors are nearly the same); its calibration and level stds are
+    the means of its points' (shared errors do not average out). `correlation_m` is the matching window's
+    footprint at the survey's median distance from the left camera.
+    """
+    from .._stereo.uncertainty import MATCH_CORRELATION_PX
+
+    dem = grid_median(survey.points, spacing, x, y, min_count)
+    if survey.cov is None or survey.sigma_z_match is None or survey.sigma_z_level is None:
+        return dem
+    cells, inside = _cell_index(survey.points, dem.x, dem.y, spacing)
+    n = dem.x.size * dem.y.size
+    count = np.bincount(cells, minlength=n).astype(np.float64)
+    has = np.isfinite(dem.z.ravel())
+
+    def cell_mean(values):
+        total = np.bincount(cells, weights=values[inside], minlength=n)
+        return np.where(has, total / np.maximum(count, 1), np.nan).reshape(dem.z.shape)
+
+    independent = np.maximum(1.0, count.reshape(dem.z.shape) / MATCH_CORRELATION_PX**2)
+    match = np.sqrt(cell_mean(survey.sigma_z_match.astype(np.float64) ** 2) / independent)
+    return dataclasses.replace(dem, sigma_match=match, sigma_calibration=cell_mean(survey.sigma_z_calibration),
+                               sigma_level=cell_mean(survey.sigma_z_level.astype(np.float64)),
+                               correlation_m=_match_footprint(survey), calibration_id=_calibration_id(survey),
+                               water_level=float(survey.water_level))
+
+
+def _calibration_id(survey) -> str:
+    """A digest of the survey's two cameras (intrinsics, distortion, poses): equal for surveys of one rig."""
+    import hashlib
+    import json
+
+    try:
+        rig = json.loads(survey.rig_json)
+        cameras = json.dumps([rig["left"], rig["right"]], sort_keys=True)
+    except (ValueError, KeyError, TypeError):
+        return ""
+    return hashlib.sha1(cameras.encode()).hexdigest()[:16]
+
+
+def _cell_index(points, x, y, spacing):
+    """Flat cell index of the points inside the grid (k,), and which points are inside (N,)."""
+    ix = np.floor((points[:, 0] - x[0]) / spacing + 0.5).astype(np.int64)
+    iy = np.floor((points[:, 1] - y[0]) / spacing + 0.5).astype(np.int64)
+    inside = (ix >= 0) & (ix < x.size) & (iy >= 0) & (iy < y.size)
+    return iy[inside] * x.size + ix[inside], inside
+
+
+def _match_footprint(survey) -> float:
+    """The matching window's width on the surface (metres) at the survey's median distance, NaN if unknown."""
+    import json
+
+    from .._stereo.uncertainty import MATCH_CORRELATION_PX
+
+    try:
+        left = json.loads(survey.rig_json)["left"]
+        center = -np.asarray(left["R"], float).T @ np.asarray(left["t"], float)
+        distance = float(np.median(np.linalg.norm(survey.points - center, axis=1)))
+        return MATCH_CORRELATION_PX * distance / float(left["fx"])
+    except (ValueError, KeyError, TypeError):
+        return float("nan")
 
 
 def grid_delaunay(points: np.ndarray, spacing: float, x: np.ndarray | None = None,
@@ -106,8 +205,12 @@ def save_dem(dem: DEM, path: PathLike) -> None:
 
     if Path(path).suffix != ".npz":
         raise JaxStereoError(f"DEM file {str(path)!r} must end in .npz")
+    layers = {key: getattr(dem, key) for key in SIGMA_LAYERS if getattr(dem, key) is not None}
+    if layers:
+        layers.update(correlation_m=np.array(dem.correlation_m), calibration_id=np.array(dem.calibration_id),
+                      water_level=np.array(dem.water_level))
     with atomic_path(path) as tmp:
-        np.savez(tmp, x=dem.x, y=dem.y, z=dem.z, spacing=np.array(dem.spacing), kind=np.array("dem"))
+        np.savez(tmp, x=dem.x, y=dem.y, z=dem.z, spacing=np.array(dem.spacing), kind=np.array("dem"), **layers)
 
 
 def load_dem(path: PathLike) -> DEM:
@@ -120,7 +223,17 @@ def load_dem(path: PathLike) -> DEM:
 def _dem_from_fields(data: dict, path) -> DEM:
     if not {"x", "y", "z", "spacing"} <= set(data):
         raise JaxStereoError(f"{str(path)!r} is not a DEM (needs x, y, z, spacing)")
-    return DEM(data["x"], data["y"], data["z"], float(data["spacing"]))
+    z = np.asarray(data["z"], dtype=np.float64)
+    layers = {}
+    for key in SIGMA_LAYERS:
+        if key in data:
+            layer = np.asarray(data[key], dtype=np.float64)
+            if layer.shape != z.shape:
+                raise JaxStereoError(f"DEM {str(path)!r}: {key} has shape {layer.shape}, its heights {z.shape}")
+            layers[key] = layer
+    return DEM(np.asarray(data["x"]), np.asarray(data["y"]), z, float(data["spacing"]), **layers,
+               correlation_m=float(data.get("correlation_m", np.nan)),
+               calibration_id=str(data.get("calibration_id", "")), water_level=float(data.get("water_level", np.nan)))
 
 
 def load_surface(path: PathLike, spacing: float, x: np.ndarray | None = None, y: np.ndarray | None = None,
@@ -140,7 +253,7 @@ def load_surface(path: PathLike, spacing: float, x: np.ndarray | None = None, y:
         survey = survey_from_fields(fields, path)
         if len(survey) == 0:
             raise JaxStereoError(f"survey {str(path)!r} holds no points")
-        return fill_holes(grid_median(survey.points, spacing, x, y), max_gap_m)
+        return fill_holes(grid_survey(survey, spacing, x, y), max_gap_m)
     raise JaxStereoError(f"{str(path)!r} is neither a survey nor a DEM")
 
 
@@ -163,5 +276,7 @@ def dem_heights(dem: DEM, xy) -> np.ndarray:
 
 def _resample(dem: DEM, x, y) -> DEM:
     X, Y = np.meshgrid(x, y)
-    z = dem_heights(dem, np.stack([X, Y], axis=-1))
-    return DEM(np.asarray(x), np.asarray(y), z, float(x[1] - x[0]) if len(x) > 1 else dem.spacing)
+    xy = np.stack([X, Y], axis=-1)
+    resampled = dem.with_layers(lambda layer: dem_heights(dataclasses.replace(dem, z=layer), xy))
+    return dataclasses.replace(resampled, x=np.asarray(x), y=np.asarray(y),
+                               spacing=float(x[1] - x[0]) if len(x) > 1 else dem.spacing)

@@ -30,8 +30,9 @@ from .._stereo.correspondences import dense_correspondences
 from .._stereo.reconstruct import ReconstructOptions, reconstruct
 from .._stereo.refine import refine_rig
 from .._stereo.survey import plot_survey_preview, save_survey
-from .._surface.damage_report import stretch_damage, write_damage_report
-from .._surface.grid import fill_holes, grid_median, save_dem
+from .._surface.damage_report import write_damage_report
+from .._surface.damage_uncertainty import stretch_damage_with_sigma
+from .._surface.grid import fill_holes, grid_survey, save_dem
 from .board_render import board_poses, render_board
 from .flume_rig import flume_rig, jpeg, realistic_rig_spec
 from .render import render_view
@@ -155,7 +156,7 @@ def _survey_stages(out: Path, rig: Rig, stages, step) -> tuple[list, dict]:
                          "seconds": info["seconds"]}
         x = dems[0].x if dems else None
         y = dems[0].y if dems else None
-        dem = fill_holes(grid_median(survey.points, 0.005, x, y), 0.01)
+        dem = fill_holes(grid_survey(survey, 0.005, x, y), 0.01)
         save_dem(dem, out / "surveys" / f"stage{name}_dem.npz")
         dems.append(dem)
     return dems, summary
@@ -165,11 +166,12 @@ def _damage(out: Path, stages, dems) -> dict:
     """Damage of each later stage against the first over the tested stretch; reports written, summaries returned."""
     summary = {}
     for (name, scene_spec, _), dem in zip(stages[1:], dems[1:]):
-        result = stretch_damage(dems[0], dem, scene_spec.dn50_m, scene_spec.slope, SWL,
-                                origin=(scene_spec.toe_x_m, 0.0), stretch=TESTED_STRETCH)
-        write_damage_report(result, dems[0], dem, out / f"damage_stage{name}")
+        result, sigma = stretch_damage_with_sigma(dems[0], dem, scene_spec.dn50_m, scene_spec.slope, SWL,
+                                                  origin=(scene_spec.toe_x_m, 0.0), stretch=TESTED_STRETCH)
+        write_damage_report(result, dems[0], dem, out / f"damage_stage{name}", sigma)
         summary[name] = result.to_dict()
         summary[name].pop("profiles")
+        summary[name]["sigma"] = sigma.sigma if sigma is not None else None
     return summary
 
 
@@ -225,12 +227,14 @@ def _report_markdown(s: dict) -> str:
               + " to ".join(f"{z:.3f}" for z in next(iter(s["damage"].values()))["active_zone_z_m"])
               + " m (6 Dn50 below to 4 Dn50 above the SWL along the slope); surfaces as a Dn50/4 ball foot sees them. "
               "S is the characteristic S of the stretch (its averaged profile), and the level is that S's on the 1:2 "
-              "slope; S max is the worst single profile (every Dn50 across).", "",
-              "| stage | A_e (m2) | L_e (m) | d_e (m) | S | S max | E2D | E3D | eroded (cm3) | level |",
+              "slope; S max is the worst single profile (every Dn50 across). sigma is S's standard deviation from the surveys' "
+              "own error bars (matching, calibration, water level), sampled through the whole damage computation.", "",
+              "| stage | A_e (m2) | L_e (m) | d_e (m) | S +- sigma | S max | E2D | E3D | eroded (cm3) | level |",
               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for name, d in s["damage"].items():
         a = d["averaged_profile"]
-        lines.append(f"| {name} | {a['A_e_m2']:.5f} | {a['L_e_m']:.3f} | {a['d_e_m']:.4f} | {a['S']:.2f} | "
+        s_sigma = f" +- {d['sigma']['S']:.2f}" if d.get("sigma") else ""
+        lines.append(f"| {name} | {a['A_e_m2']:.5f} | {a['L_e_m']:.3f} | {a['d_e_m']:.4f} | {a['S']:.2f}{s_sigma} | "
                      f"{d['S_max']:.2f} | {a['E2D']:.2f} | {'n/m' if d['E3D'] is None else format(d['E3D'], '.2f')} | "
                      f"{1e6 * d['eroded_volume_m3']:.0f} | {d['damage_level']} |")
     lines += ["", "![damage versus stage](damage_vs_stage.png)", "",

@@ -4,14 +4,13 @@ the disparity's standard deviation against the scatter it predicts, and a survey
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
-from jaxstereo import Camera, Interface, Pose, Rig, reconstruct
+from jaxstereo import Interface, Rig, reconstruct
 from jaxstereo._stereo import matching
 from jaxstereo._stereo.matching import refine_disparity
 from jaxstereo._stereo.reconstruct import _triangulate_chunk, _triangulate_model
 from jaxstereo._stereo.rectify import rectified_to_real, rectify
-from jaxstereo._stereo.uncertainty import SHARED_PARAMETERS, _shared_jacobians, covariance_matrices
+from jaxstereo._stereo.uncertainty import SHARED_PARAMETERS, _shared_jacobians, covariance_matrices, perturbed_rig
 from jaxstereo._synthetic.flume_rig import flume_rig, realistic_rig_spec
 
 LEVEL = 0.18
@@ -54,22 +53,13 @@ def test_disparity_jacobian_matches_finite_differences(x64, wet_pair):
     assert np.all(np.abs(np.asarray(jac)[:, 2]) > 1e-4)  # millimetres per pixel: a real derivative
 
 
-def _reference_points(theta, left: Camera, right: Camera, interface: Interface, raw_l, raw_r, submerged):
-    """numpy reference: the same raw pixels seen by cameras moved by `theta` (SHARED_PARAMETERS), backprojected,
+def _reference_points(theta, rig: Rig, interface: Interface, raw_l, raw_r, submerged):
+    """numpy reference: the same raw pixels seen by the rig moved by `theta` (`perturbed_rig`), backprojected,
     refracted by Snell's law at the moved water level and triangulated by the rays' midpoint."""
-    eps, frame = theta[12], Rotation.from_rotvec(theta[0:3]).as_matrix()
-
-    def moved(cam: Camera, pose_delta):
-        R, c = np.asarray(cam.pose.R), np.asarray(cam.pose.center) * (1 + eps)
-        R = R @ Rotation.from_rotvec(pose_delta[:3]).as_matrix()
-        c = c + pose_delta[3:]
-        R, c = R @ frame.T, frame @ c + theta[3:6]
-        return Camera(float(cam.fx) * (1 + eps), float(cam.fy) * (1 + eps), float(cam.cx), float(cam.cy), cam.dist,
-                      Pose.from_center(R, c), cam.image_size)
-
+    moved = perturbed_rig(rig, theta)
     rays = []
-    for cam, raw, delta in ((left, raw_l, np.zeros(6)), (right, raw_r, theta[6:12])):
-        o, d = (np.asarray(a) for a in moved(cam, delta).backproject(raw))
+    for cam, raw in ((moved.left, raw_l), (moved.right, raw_r)):
+        o, d = (np.asarray(a) for a in cam.backproject(raw))
         if submerged:
             s = (interface.level + theta[13] - o[:, 2]) / d[:, 2]
             o = o + s[:, None] * d
@@ -93,13 +83,14 @@ def test_shared_jacobians_match_finite_differences_of_a_numpy_reference(x64, wet
     raw_l = np.asarray(rectified_to_real(rect, left, 0, jnp.asarray(rl))[0])
     raw_r = np.asarray(rectified_to_real(rect, right, 1, jnp.asarray(rr))[0])
     J = np.asarray(_shared_jacobians(rect, left, right, interface, jnp.asarray(rl), jnp.asarray(rr)))
+    rig = Rig(left, right)
     steps = [1e-6] * 3 + [1e-6] * 3 + [1e-7] * 3 + [1e-7] * 3 + [1e-6, 1e-6]
     for cls in (0, 1):
         for k, name in enumerate(SHARED_PARAMETERS):
             delta = np.zeros(14)
             delta[k] = steps[k]
-            fd = (_reference_points(delta, left, right, interface, raw_l, raw_r, cls)
-                  - _reference_points(-delta, left, right, interface, raw_l, raw_r, cls)) / (2 * steps[k])
+            fd = (_reference_points(delta, rig, interface, raw_l, raw_r, cls)
+                  - _reference_points(-delta, rig, interface, raw_l, raw_r, cls)) / (2 * steps[k])
             scale = np.abs(fd).max()
             if cls == 0 and name == "water level (m)":
                 assert np.all(J[cls, :, :, k] == 0)  # the level does not move emerged points

@@ -1,0 +1,140 @@
+"""Error bars of the damage figures, by sampling the surveys' errors through the whole damage computation.
+
+The damage figures are not smooth functions of the surfaces (erosion is where one profile passes below the
+other; the largest zone is picked; the profiler's foot closes crevices), so the DEMs' errors are sampled
+rather than linearised: each draw perturbs both DEMs with
+
+- the matching errors: a Gaussian field with each cell's `sigma_match`, correlated over the matching window's
+  footprint (`correlation_m`: white noise averaged over a box that wide, as the window averages the pixels);
+- the calibration's and the water level's errors: shared by every cell of a survey, one normal deviate per
+  survey times each cell's `sigma_calibration` / `sigma_level`; the same deviate in both surveys when they
+  share the calibration (the same rig) or the water level (the same level, known to the same std), so that a
+  common error cancels in the difference as it does in reality;
+
+and the damage is computed again. Each figure's sigma is the standard deviation over the draws.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+from scipy import ndimage
+
+from .._geometry.errors import JaxStereoError
+from .damage_report import StretchDamage
+from .grid import DEM
+
+DRAWS = 48
+
+FIGURES = ("A_e_m2", "L_e_m", "d_e_m", "S", "E2D", "S_mean_above_threshold", "S_max", "L_e_max_m", "d_e_max_m",
+           "eroded_volume_m3", "accreted_volume_m3", "E3D")
+
+
+@dataclasses.dataclass(frozen=True)
+class DamageSigma:
+    """Standard deviations of a `StretchDamage`'s figures.
+
+    **Fields:** `sigma` figure name (`FIGURES`: the averaged profile's `A_e_m2`, `L_e_m`, `d_e_m`, `S`, `E2D`,
+    then the stretch's) -> standard deviation in the figure's unit (None where a draw could not compute it);
+    `profile_S` profile y (m) -> sigma of its S; `draws` the number of draws that computed; `failed` those
+    that did not; `shared_calibration` and `shared_level` whether those errors were taken as common to both
+    surveys.
+    """
+
+    sigma: dict
+    profile_S: dict
+    draws: int
+    failed: int
+    shared_calibration: bool
+    shared_level: bool
+
+
+def correlated_noise(shape: tuple[int, int], width_cells: float, rng: np.random.Generator) -> np.ndarray:
+    """A unit-variance Gaussian field (shape) correlated over `width_cells`: white noise averaged over a box of
+    that width (cells), rescaled."""
+    w = max(1, int(round(width_cells)))
+    white = rng.standard_normal(shape)
+    if w == 1:
+        return white
+    return ndimage.uniform_filter(white, size=w, mode="wrap") * w
+
+
+def _figures(result: StretchDamage) -> tuple[dict, dict]:
+    d = result.to_dict()
+    averaged = d["averaged_profile"]
+    values = {key: averaged[key] for key in ("A_e_m2", "L_e_m", "d_e_m", "S", "E2D")}
+    values.update({key: d[key] for key in FIGURES if key not in values})
+    return values, {round(y, 6): p.S for y, p in result.profiles}
+
+
+def damage_sigma(before: DEM, after: DEM, compute: Callable[[DEM, DEM], StretchDamage], shared_calibration: bool,
+                 shared_level: bool, draws: int = DRAWS, seed: int = 0) -> DamageSigma:
+    """Sample the DEMs' errors through `compute` (the damage computation, e.g. a `stretch_damage` call with its
+    settings) `draws` times; the standard deviation of each figure.
+
+    **Arguments:** the DEMs with their sigma layers (from `grid_survey`); `compute(before, after)`;
+    `shared_calibration` / `shared_level`: the surveys share that error (the same rig; the same level and its
+    std), so one deviate serves both; `draws`; `seed` of the random draws (reproducible).
+
+    Raises `JaxStereoError` if a DEM has no sigma layers, or if fewer than half the draws could be computed.
+    """
+    for name, dem in (("before", before), ("after", after)):
+        if not dem.has_sigma:
+            raise JaxStereoError(f"the {name} surface has no sigma layers: grid a survey made with error bars "
+                                 "(jaxstereo reconstruct writes them) to get the damage's")
+    rng = np.random.default_rng(seed)
+    samples, profiles, failed = [], [], 0
+    for _ in range(draws):
+        common = rng.standard_normal(2)
+        perturbed = []
+        for dem in (before, after):
+            own = rng.standard_normal(2)
+            e_cal = common[0] if shared_calibration else own[0]
+            e_level = common[1] if shared_level else own[1]
+            width = dem.correlation_m / dem.spacing if np.isfinite(dem.correlation_m) else 1.0
+            noise = (dem.sigma_match * correlated_noise(dem.z.shape, width, rng)
+                     + e_cal * dem.sigma_calibration + e_level * dem.sigma_level)
+            perturbed.append(dataclasses.replace(dem, z=dem.z + np.nan_to_num(noise)))
+        try:
+            values, per_profile = _figures(compute(*perturbed))
+        except JaxStereoError:
+            failed += 1
+            continue
+        samples.append(values)
+        profiles.append(per_profile)
+    if len(samples) < max(2, draws // 2):
+        raise JaxStereoError(f"the damage could be computed in only {len(samples)} of {draws} draws of the surveys' "
+                             "errors: its uncertainty is not determined")
+    sigma = {}
+    for key in FIGURES:
+        column = [s[key] for s in samples]
+        sigma[key] = None if any(v is None for v in column) else float(np.std(column, ddof=1))
+    ys = set.intersection(*(set(p) for p in profiles))
+    profile_S = {y: float(np.std([p[y] for p in profiles], ddof=1)) for y in sorted(ys)}
+    return DamageSigma(sigma, profile_S, len(samples), failed, shared_calibration, shared_level)
+
+
+def shares_errors(before: DEM, after: DEM) -> tuple[bool, bool]:
+    """Whether two surveys share the calibration's errors (the same cameras) and the water level's (the same
+    level, to the same std, in both: one estimate)."""
+    calibration = bool(before.calibration_id) and before.calibration_id == after.calibration_id
+    level = (np.isfinite(before.water_level) and before.water_level == after.water_level
+             and before.has_sigma and after.has_sigma
+             and np.allclose(np.nanmedian(before.sigma_level), np.nanmedian(after.sigma_level)))
+    return calibration, bool(level)
+
+
+def stretch_damage_with_sigma(before: DEM, after: DEM, *args, draws: int = DRAWS, **kwargs
+                              ) -> tuple[StretchDamage, DamageSigma | None]:
+    """`stretch_damage(before, after, *args, **kwargs)` and, when both DEMs carry sigma layers, its figures'
+    standard deviations (`damage_sigma`; None otherwise)."""
+    from .damage_report import stretch_damage
+
+    result = stretch_damage(before, after, *args, **kwargs)
+    if not (before.has_sigma and after.has_sigma):
+        return result, None
+    calibration, level = shares_errors(before, after)
+    sigma = damage_sigma(before, after, lambda b, a: stretch_damage(b, a, *args, **kwargs), calibration, level, draws)
+    return result, sigma
