@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -78,7 +79,7 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, min_disparity: int, num_
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,
                      window: int = 31, max_spread_px: float = 0.5, sigma_window: int = 5,
-                     subpixel: bool = True, with_sigma: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+                     subpixel: bool = True, with_sigma: bool = True) -> Subpixel:
     """Sub-pixel disparities by Lucas-Kanade over a `window` x `window` patch, from whole-pixel bases, and
     each disparity's standard deviation from the fit's own residuals.
 
@@ -100,8 +101,14 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     **Arguments:** rectified `left`, `right` images (grey or RGB, uint8); `disparity` (h, w) pixels, NaN for
     no match (`x_right = x_left - d`); `row_offset` (h, w) pixels or None.
 
-    **Returns:** `(disparity, sigma)`: the refined disparity (h, w) and its standard deviation (h, w), both
-    pixels, NaN where the input was NaN; `sigma` is None when `with_sigma` is False.
+    The two sub-pixel estimators are compared too: SGBM's own value minus the refined one, averaged over the
+    `window` around each pixel and less the part SGBM's own noise explains, is their systematic disagreement.
+    Neither is known to be right on a given texture (Lucas-Kanade is better on fine speckle, SGBM's own values
+    on rubble seen at coarse resolution), so it counts as an error of the survey.
+
+    **Returns:** a `Subpixel`: the refined `disparity` (h, w), its standard deviation `sigma` (h, w) and the
+    estimators' `disagreement` (h, w), all pixels, NaN where the input was NaN; `sigma` and `disagreement` are
+    None when `with_sigma` is False (`disagreement` is zero without `subpixel`).
     """
     L = _channels(left)
     Rimg = _channels(right)
@@ -130,7 +137,8 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
                    for a, b in zip(*[_evaluate(f, d0 - shift) for f in fits[sigma_window]])]
         sigma_sgbm = SGBM_NOISE_SCALE * np.sqrt(at_sgbm[1] / np.maximum(at_sgbm[0], 1e-12))
     if not subpixel:
-        return _masked(d0, valid), _masked(sigma_sgbm, valid)
+        zero = None if sigma_sgbm is None else np.zeros_like(d0)
+        return Subpixel(_masked(d0, valid), _masked(sigma_sgbm, valid), _masked(zero, valid))
     estimates = [f[2] + shift for f in fits[window]]
     refined = (1 - fraction) * estimates[0] + fraction * estimates[1]
     sigma_refined = None
@@ -143,8 +151,31 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     square = cv2.boxFilter(d0 * d0 * weight, -1, box, normalize=False) / np.maximum(count, 1)
     smooth = np.sqrt(np.maximum(square - mean * mean, 0.0)) <= max_spread_px
     keep = valid & smooth & (count >= 0.5 * window * window) & (np.abs(refined - d0) < 1.0)
-    sigma = None if not with_sigma else np.where(keep, sigma_refined, sigma_sgbm)
-    return _masked(np.where(keep, refined, d0), valid), _masked(sigma, valid)
+    sigma = disagreement = None
+    if with_sigma:
+        sigma = np.where(keep, sigma_refined, sigma_sgbm)
+        disagreement = _disagreement(d0, refined, keep, sigma_sgbm, window, sigma_window)
+    return Subpixel(_masked(np.where(keep, refined, d0), valid), _masked(sigma, valid), _masked(disagreement, valid))
+
+
+class Subpixel(NamedTuple):
+    """`refine_disparity`'s result: `disparity`, `sigma` and `disagreement` (h, w) pixels (see there)."""
+
+    disparity: np.ndarray
+    sigma: np.ndarray | None
+    disagreement: np.ndarray | None
+
+
+def _disagreement(sgbm, refined, keep, sigma_sgbm, window: int, block: int):
+    """SGBM's value minus the refined one, averaged over each `window` where the refined value was kept, shrunk
+    by the variance SGBM's own noise leaves in that mean (its errors are correlated over a `block`-wide
+    square): a systematic offset between the estimators, zero where none shows (h, w) pixels."""
+    k = keep.astype(np.float64)
+    box = (window, window)
+    count = np.maximum(cv2.boxFilter(k, -1, box, normalize=False), 1.0)
+    mean = cv2.boxFilter(np.where(keep, sgbm - refined, 0.0), -1, box, normalize=False) / count
+    noise = cv2.boxFilter(k * sigma_sgbm**2, -1, box, normalize=False) / count * block**2 / count
+    return np.sign(mean) * np.sqrt(np.maximum(mean**2 - noise, 0.0))
 
 
 # Least-squares standard deviations assume independent pixel noise; JPEG blocks, demosaicing and the Sobel

@@ -279,7 +279,7 @@ def reconstruct(
 
     t1 = time.perf_counter()
     offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None
-    disparity, sigma_d = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
+    disparity, sigma_d, disagreement = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
                                           sigma_window=options.match.block_size, subpixel=options.subpixel,
                                           with_sigma=options.uncertainty)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
@@ -292,15 +292,17 @@ def reconstruct(
     kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px,
                                 options.uncertainty)
     timings["triangulate (s)"] = time.perf_counter() - t2
-    cov = sigma_z_match = sigma_z_level = shared = None
+    errors = {}
+    shared = None
     if options.uncertainty:
         t3 = time.perf_counter()
         shared = shared_errors(rig, _level_std(rig, water_level, interface, options))
         table = shared_covariance_table(rect, rig, interface, shared, rig.image_size, search)
-        cov, sigma_z_match, sigma_z_level = point_covariances(table, kept.v, kept.u, disparity[kept.v, kept.u], kept.submerged,
-                                               sigma_d[kept.v, kept.u].astype(np.float64), kept.dpoint_dd)
+        errors = point_covariances(table, kept.v, kept.u, disparity[kept.v, kept.u], kept.submerged,
+                                   sigma_d[kept.v, kept.u].astype(np.float64), kept.dpoint_dd,
+                                   disagreement[kept.v, kept.u].astype(np.float64))
         timings["uncertainty (s)"] = time.perf_counter() - t3
-    survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model, cov, sigma_z_match, sigma_z_level)
+    survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model, errors)
     under = offset[kept.v, kept.u][survey.submerged] if offset is not None else np.zeros(0)
     summary = {
         "points": len(survey),
@@ -359,8 +361,7 @@ def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offse
                  dpoint_dd[keep])
 
 
-def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str, cov, sigma_z_match,
-               sigma_z_level) -> Survey:
+def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str, errors: dict) -> Survey:
     """The survey of the kept points: colours from the left rectified image, pixels of the real left image."""
     colour = rect_l[kept.v, kept.u]
     level = float(interface.level) if interface is not None else float("nan")
@@ -372,9 +373,7 @@ def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str, c
         rig_json=json.dumps(rig_to_dict(rig.with_interface(interface)), default=float),
         model=model,
         water_level=level,
-        cov=cov,
-        sigma_z_match=sigma_z_match,
-        sigma_z_level=sigma_z_level,
+        **errors,
     )
 
 

@@ -23,7 +23,9 @@ class Survey:
     covariance [xx, yy, zz, xy, xz, yz] m^2 (world axes; matching and shared errors together, see
     `jaxstereo._stereo.uncertainty`), None when not known (surveys written before it existed);
     `sigma_z_match` (N,) the vertical std (metres) from matching alone, independent between points beyond
-    the matching window, and `sigma_z_level` (N,) from the water level alone, or None; the rest of `sigma_z`
+    the matching window, `sigma_z_level` (N,) from the water level alone, and `dz_subpixel` (N,) the signed
+    vertical offset between the two sub-pixel estimators (SGBM's own minus the refined, averaged over the
+    window: a systematic error of unknown sign, see `refine_disparity`), or None; the rest of `sigma_z`
     (`sigma_z_calibration`) comes from the calibration. The level's and the calibration's parts are shared by
     every point of the survey.
     """
@@ -38,6 +40,7 @@ class Survey:
     cov: np.ndarray | None = None
     sigma_z_match: np.ndarray | None = None
     sigma_z_level: np.ndarray | None = None
+    dz_subpixel: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -49,7 +52,8 @@ class Survey:
 
     @property
     def sigma_z_shared(self) -> np.ndarray | None:
-        """The part of `sigma_z` (N,) metres shared by every point (calibration, water level), or None."""
+        """The part of `sigma_z` (N,) metres that does not average out between points (calibration, water level,
+        the sub-pixel estimators' disagreement), or None."""
         if self.cov is None or self.sigma_z_match is None:
             return None
         return np.sqrt(np.maximum(self.cov[:, 2].astype(np.float64) - self.sigma_z_match.astype(np.float64) ** 2, 0.0))
@@ -60,7 +64,8 @@ class Survey:
         shared = self.sigma_z_shared
         if shared is None or self.sigma_z_level is None:
             return None
-        return np.sqrt(np.maximum(shared**2 - self.sigma_z_level.astype(np.float64) ** 2, 0.0))
+        method = 0.0 if self.dz_subpixel is None else self.dz_subpixel.astype(np.float64) ** 2
+        return np.sqrt(np.maximum(shared**2 - self.sigma_z_level.astype(np.float64) ** 2 - method, 0.0))
 
 
 def save_survey(survey: Survey, path: PathLike) -> None:
@@ -71,7 +76,7 @@ def save_survey(survey: Survey, path: PathLike) -> None:
     extra = {}
     if survey.cov is not None:
         extra["cov"] = survey.cov.astype(np.float32)
-    for key in ("sigma_z_match", "sigma_z_level"):
+    for key in ("sigma_z_match", "sigma_z_level", "dz_subpixel"):
         if getattr(survey, key) is not None:
             extra[key] = getattr(survey, key).astype(np.float32)
     with atomic_path(path) as tmp:
@@ -100,12 +105,12 @@ def survey_from_fields(fields: dict, path) -> Survey:
     if bad:
         raise JaxStereoError(f"survey {str(path)!r} holds {bad} point(s) with NaN or infinite coordinates")
     cov = _optional(fields, "cov", (points.shape[0], 6), path)
-    sigma_z_match, sigma_z_level = (_optional(fields, key, (points.shape[0],), path)
-                                    for key in ("sigma_z_match", "sigma_z_level"))
+    sigma_z_match, sigma_z_level, dz_subpixel = (_optional(fields, key, (points.shape[0],), path)
+                                                 for key in ("sigma_z_match", "sigma_z_level", "dz_subpixel"))
     return Survey(points, np.asarray(fields["colors"]), np.asarray(fields["pixels"]),
                   np.asarray(fields["submerged"], dtype=bool), str(fields.get("rig", "")),
                   str(fields.get("model", "")), float(fields.get("water_level", np.nan)), cov, sigma_z_match,
-                  sigma_z_level)
+                  sigma_z_level, dz_subpixel)
 
 
 def _optional(fields: dict, key: str, shape: tuple, path) -> np.ndarray | None:

@@ -150,14 +150,17 @@ def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface 
 
 
 def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.ndarray, submerged: np.ndarray,
-                      sigma_d: np.ndarray, dpoint_dd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each point's covariance: shared (interpolated from `table`) plus matching (`sigma_d^2 j j^T`).
+                      sigma_d: np.ndarray, dpoint_dd: np.ndarray, disagreement: np.ndarray) -> dict:
+    """Each point's covariance: shared (interpolated from `table`), matching (`sigma_d^2 j j^T`) and the sub-pixel
+    estimators' disagreement (`delta^2 j j^T`, see `refine_disparity`), with `j = dpoint_dd`.
 
     **Arguments:** the matches' left rectified rows `v`, columns `u`, disparities (k,) pixels; `submerged`
-    (k,) bool; the disparities' std `sigma_d` (k,) pixels; `dpoint_dd` (k, 3) metres per pixel of disparity.
+    (k,) bool; the disparities' std `sigma_d` (k,) pixels; `dpoint_dd` (k, 3) metres per pixel of disparity;
+    `disagreement` (k,) pixels.
 
-    **Returns:** `(cov, sigma_z_match, sigma_z_level)`: (k, 6) float32 [xx, yy, zz, xy, xz, yz] m^2, and the
-    matching's and the water level's parts of the vertical std (k,) float32 metres.
+    **Returns:** the `Survey` fields `cov` (k, 6) float32 [xx, yy, zz, xy, xz, yz] m^2, `sigma_z_match` and
+    `sigma_z_level` (k,) float32 metres (the matching's and the water level's parts of the vertical std), and
+    `dz_subpixel` (k,) float32 metres, the signed vertical offset the estimators' disagreement gives.
     """
     origin, step = table["origin"], table["step"]
     coords = np.stack([(v - origin[0]) / step[0], (u - origin[1]) / step[1], (disparity - origin[2]) / step[2]], -1)
@@ -165,10 +168,13 @@ def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.n
                                 jnp.asarray(submerged.astype(np.int32))))
     cov, level_zz = seven[:, :6], seven[:, 6]
     j = dpoint_dd * sigma_d[:, None]
-    cov += np.stack([j[:, 0] ** 2, j[:, 1] ** 2, j[:, 2] ** 2, j[:, 0] * j[:, 1], j[:, 0] * j[:, 2],
-                     j[:, 1] * j[:, 2]], axis=-1)
-    return (cov.astype(np.float32), np.abs(j[:, 2]).astype(np.float32),
-            np.sqrt(np.maximum(level_zz, 0.0)).astype(np.float32))
+    jd = dpoint_dd * np.nan_to_num(disagreement)[:, None]
+    for a in (j, jd):
+        cov += np.stack([a[:, 0] ** 2, a[:, 1] ** 2, a[:, 2] ** 2, a[:, 0] * a[:, 1], a[:, 0] * a[:, 2],
+                         a[:, 1] * a[:, 2]], axis=-1)
+    return {"cov": cov.astype(np.float32), "sigma_z_match": np.abs(j[:, 2]).astype(np.float32),
+            "sigma_z_level": np.sqrt(np.maximum(level_zz, 0.0)).astype(np.float32),
+            "dz_subpixel": jd[:, 2].astype(np.float32)}
 
 
 @jax.jit

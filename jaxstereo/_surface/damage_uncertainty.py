@@ -10,6 +10,8 @@ rather than linearised: each draw perturbs both DEMs with
   survey times each cell's `sigma_calibration` / `sigma_level`; the same deviate in both surveys when they
   share the calibration (the same rig) or the water level (the same level, known to the same std), so that a
   common error cancels in the difference as it does in reality;
+- the sub-pixel estimators' systematic disagreement (`dz_subpixel`, signed): one deviate common to both
+  surveys (the same method errs the same way on the same texture, so it cancels where nothing changed);
 
 and the damage is computed again. Each figure's sigma is the standard deviation over the draws.
 """
@@ -87,7 +89,7 @@ def damage_sigma(before: DEM, after: DEM, compute: Callable[[DEM, DEM], StretchD
     rng = np.random.default_rng(seed)
     samples, profiles, failed = [], [], 0
     for _ in range(draws):
-        common = rng.standard_normal(2)
+        common = rng.standard_normal(3)
         perturbed = []
         for dem in (before, after):
             own = rng.standard_normal(2)
@@ -96,6 +98,8 @@ def damage_sigma(before: DEM, after: DEM, compute: Callable[[DEM, DEM], StretchD
             width = dem.correlation_m / dem.spacing if np.isfinite(dem.correlation_m) else 1.0
             noise = (dem.sigma_match * correlated_noise(dem.z.shape, width, rng)
                      + e_cal * dem.sigma_calibration + e_level * dem.sigma_level)
+            if dem.dz_subpixel is not None:
+                noise = noise + common[2] * dem.dz_subpixel
             perturbed.append(dataclasses.replace(dem, z=dem.z + np.nan_to_num(noise)))
         try:
             values, per_profile = _figures(compute(*perturbed))

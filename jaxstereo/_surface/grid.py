@@ -10,6 +10,7 @@ from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike
 
 SIGMA_LAYERS = ("sigma_match", "sigma_calibration", "sigma_level")
+ERROR_LAYERS = SIGMA_LAYERS + ("dz_subpixel",)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -20,7 +21,8 @@ class DEM:
     metres, NaN where no data; `spacing` metres. From a survey with error bars (`grid_survey`), each cell's
     vertical standard deviation (ny, nx) metres in three parts: `sigma_match` (matching; its errors are
     correlated over `correlation_m` metres, independent beyond), `sigma_calibration` and `sigma_level`
-    (shared by every cell of the survey); None when unknown. `calibration_id` names the cameras the survey
+    (shared by every cell of the survey); `dz_subpixel` the signed offset (metres) between the two sub-pixel
+    estimators, a systematic error of unknown sign (see `Survey.dz_subpixel`); None when unknown. `calibration_id` names the cameras the survey
     was made with (a digest; surveys with the same one share the calibration's errors) and `water_level` its
     level (metres, NaN when dry or unknown): empty / NaN when unknown.
     """
@@ -32,6 +34,7 @@ class DEM:
     sigma_match: np.ndarray | None = None
     sigma_calibration: np.ndarray | None = None
     sigma_level: np.ndarray | None = None
+    dz_subpixel: np.ndarray | None = None
     correlation_m: float = float("nan")
     calibration_id: str = ""
     water_level: float = float("nan")
@@ -45,11 +48,12 @@ class DEM:
         """Each cell's total vertical standard deviation (ny, nx) metres, or None."""
         if not self.has_sigma:
             return None
-        return np.sqrt(self.sigma_match**2 + self.sigma_calibration**2 + self.sigma_level**2)
+        method = 0.0 if self.dz_subpixel is None else self.dz_subpixel**2
+        return np.sqrt(self.sigma_match**2 + self.sigma_calibration**2 + self.sigma_level**2 + method)
 
     def with_layers(self, fn) -> "DEM":
-        """This DEM with `fn` applied to its height and to each of its sigma layers (ny, nx) -> (ny', nx')."""
-        layers = {key: None if getattr(self, key) is None else fn(getattr(self, key)) for key in SIGMA_LAYERS}
+        """This DEM with `fn` applied to its height and to each of its error layers (ny, nx) -> (ny', nx')."""
+        layers = {key: None if getattr(self, key) is None else fn(getattr(self, key)) for key in ERROR_LAYERS}
         return dataclasses.replace(self, z=fn(self.z), **layers)
 
 
@@ -139,6 +143,8 @@ def grid_survey(survey, spacing: float, x: np.ndarray | None = None, y: np.ndarr
     match = np.sqrt(cell_mean(survey.sigma_z_match.astype(np.float64) ** 2) / independent)
     return dataclasses.replace(dem, sigma_match=match, sigma_calibration=cell_mean(survey.sigma_z_calibration),
                                sigma_level=cell_mean(survey.sigma_z_level.astype(np.float64)),
+                               dz_subpixel=None if survey.dz_subpixel is None else
+                               cell_mean(survey.dz_subpixel.astype(np.float64)),
                                correlation_m=_match_footprint(survey), calibration_id=_calibration_id(survey),
                                water_level=float(survey.water_level))
 
@@ -205,7 +211,7 @@ def save_dem(dem: DEM, path: PathLike) -> None:
 
     if Path(path).suffix != ".npz":
         raise JaxStereoError(f"DEM file {str(path)!r} must end in .npz")
-    layers = {key: getattr(dem, key) for key in SIGMA_LAYERS if getattr(dem, key) is not None}
+    layers = {key: getattr(dem, key) for key in ERROR_LAYERS if getattr(dem, key) is not None}
     if layers:
         layers.update(correlation_m=np.array(dem.correlation_m), calibration_id=np.array(dem.calibration_id),
                       water_level=np.array(dem.water_level))
@@ -225,7 +231,7 @@ def _dem_from_fields(data: dict, path) -> DEM:
         raise JaxStereoError(f"{str(path)!r} is not a DEM (needs x, y, z, spacing)")
     z = np.asarray(data["z"], dtype=np.float64)
     layers = {}
-    for key in SIGMA_LAYERS:
+    for key in ERROR_LAYERS:
         if key in data:
             layer = np.asarray(data[key], dtype=np.float64)
             if layer.shape != z.shape:
