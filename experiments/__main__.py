@@ -6,7 +6,15 @@ import argparse
 import re
 from pathlib import Path
 
-from . import damage_evolution, incidence_limit, sloping_board, submerged_plane, water_level, wet_versus_dry
+from . import (
+    damage_evolution,
+    incidence_limit,
+    sloping_board,
+    submerged_plane,
+    uncertainty,
+    water_level,
+    wet_versus_dry,
+)
 from ._common import Output
 
 EXPERIMENTS = {
@@ -16,6 +24,7 @@ EXPERIMENTS = {
     "wet-versus-dry": (wet_versus_dry, "wet_versus_dry.png"),
     "damage-evolution": (damage_evolution, "stage_III/profile.png"),
     "water-level": (water_level, ""),
+    "uncertainty": (uncertainty, "uncertainty.png"),
 }
 ROOT = Path(__file__).resolve().parent
 

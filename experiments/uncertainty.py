@@ -14,6 +14,7 @@ S +- sigma of each stage against its true S (the same computation on the true su
 from __future__ import annotations
 
 import json
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -63,10 +64,8 @@ def board_errors(survey: js.Survey, rig: dict, truth: dict, scene: str):
     return error[on], sigma[on], P[on, 2], incidence[on]
 
 
-def _flume_board(out: Output, key: str, scene: str) -> dict:
+def _flume_board(out: Output, work: Path, key: str, scene: str) -> dict:
     truth = json.loads((DATA / "truth.json").read_text())
-    work = out.dir / "work"
-    work.mkdir(exist_ok=True)
     rig_path = work / f"rig_{key}.json"
     calib, origin = ("calib", "origin") if key == "main" else ("calib_oblique", "origin_oblique")
     if not rig_path.exists():
@@ -90,7 +89,7 @@ def js_main(argv):
         raise RuntimeError(f"jaxstereo {' '.join(argv)} failed")
 
 
-def incidence_coverage(error, sigma, incidence, submerged, bins=(0, 10, 20, 30, 40, 50)):
+def incidence_coverage(error, sigma, incidence, submerged, bins=tuple(range(0, 55, 5))):
     """Coverage and predicted/measured RMS of the submerged points per incidence bin (deg)."""
     rows = []
     for lo, hi in zip(bins[:-1], bins[1:]):
@@ -145,8 +144,9 @@ def trial(seed: int, size=(864, 576), log=print) -> list[dict]:
 def run(out: Output, full: bool = False) -> None:
     boards = {}
     if DATA.is_dir():
-        for key, scene in (("main", "board_wet"), ("oblique", "oblique_board_wet")):
-            boards[key] = _flume_board(out, key, scene)
+        with tempfile.TemporaryDirectory() as work:
+            for key, scene in (("main", "board_wet"), ("oblique", "oblique_board_wet")):
+                boards[key] = _flume_board(out, Path(work), key, scene)
     else:
         out.log(f"no development flume at {DATA}: part 1 skipped")
     trials = 20

@@ -32,7 +32,7 @@ from .._geometry.precision import float64
 from .._geometry.refraction import intersect_plane
 from .._geometry.triangulate import triangulate_rays
 from .epipolar import disparity_bounds, exact_row_offset, triangulate_exact
-from .matching import MatchOptions, disparity_search_range, refine_disparity, sgbm_disparity
+from .matching import MatchOptions, Subpixel, disparity_search_range, refine_disparity, sgbm_disparity
 from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, remap
 from .survey import Survey
 from .uncertainty import SharedErrors, point_covariances, shared_covariance_table, shared_errors
@@ -279,28 +279,21 @@ def reconstruct(
 
     t1 = time.perf_counter()
     offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None
-    disparity, sigma_d, disagreement = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
-                                          sigma_window=options.match.block_size, subpixel=options.subpixel,
-                                          with_sigma=options.uncertainty)
+    subpixel = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
+                                sigma_window=options.match.block_size, subpixel=options.subpixel,
+                                with_sigma=options.uncertainty)
+    disparity, undetermined = _drop_undetermined(subpixel, options.max_sigma_disparity_px)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    undetermined = 0
-    if sigma_d is not None:
-        undetermined = int(np.count_nonzero(sigma_d > options.max_sigma_disparity_px))
-        disparity = np.where(sigma_d <= options.max_sigma_disparity_px, disparity, np.nan)
     kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px,
                                 options.uncertainty)
     timings["triangulate (s)"] = time.perf_counter() - t2
-    errors = {}
-    shared = None
+    errors, shared = {}, None
     if options.uncertainty:
         t3 = time.perf_counter()
         shared = shared_errors(rig, _level_std(rig, water_level, interface, options))
-        table = shared_covariance_table(rect, rig, interface, shared, rig.image_size, search)
-        errors = point_covariances(table, kept.v, kept.u, disparity[kept.v, kept.u], kept.submerged,
-                                   sigma_d[kept.v, kept.u].astype(np.float64), kept.dpoint_dd,
-                                   disagreement[kept.v, kept.u].astype(np.float64))
+        errors = _point_errors(rect, rig, interface, shared, search, kept, subpixel._replace(disparity=disparity))
         timings["uncertainty (s)"] = time.perf_counter() - t3
     survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model, errors)
     under = offset[kept.v, kept.u][survey.submerged] if offset is not None else np.zeros(0)
@@ -316,10 +309,27 @@ def reconstruct(
         "vertical_parallax_px_mean": float(np.mean(np.abs(under))) if under.size else 0.0,
         "vertical_parallax_px_max": float(np.max(np.abs(under))) if under.size else 0.0,
         "median_ray_gap_px": kept.median_gap_px,
-        **(_uncertainty_summary(survey, shared, sigma_d[kept.v, kept.u]) if shared is not None else {}),
+        **(_uncertainty_summary(survey, shared, subpixel.sigma[kept.v, kept.u]) if shared is not None else {}),
         "seconds": timings,
     }
     return survey, summary
+
+
+def _drop_undetermined(subpixel: Subpixel, limit_px: float) -> tuple[np.ndarray, int]:
+    """The disparities (h, w) with NaN where their standard deviation exceeds `limit_px`, and how many those were."""
+    if subpixel.sigma is None:
+        return subpixel.disparity, 0
+    undetermined = subpixel.sigma > limit_px
+    return np.where(undetermined, np.nan, subpixel.disparity), int(np.count_nonzero(undetermined))
+
+
+def _point_errors(rect, rig: Rig, interface, shared: SharedErrors, search, kept: "_Kept", subpixel: Subpixel) -> dict:
+    """The kept points' error fields for the `Survey` (see `point_covariances`)."""
+    table = shared_covariance_table(rect, rig, interface, shared, rig.image_size, search)
+    v, u = kept.v, kept.u
+    return point_covariances(table, v, u, subpixel.disparity[v, u], kept.submerged,
+                             subpixel.sigma[v, u].astype(np.float64), kept.dpoint_dd,
+                             subpixel.disagreement[v, u].astype(np.float64))
 
 
 @dataclasses.dataclass(frozen=True)

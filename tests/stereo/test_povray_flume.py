@@ -107,3 +107,38 @@ def test_breakwater_wet_survey_has_no_refracted_mismatches(flume):
     assert emerged_wet - emerged_dry <= 0.2  # the emerged rock matched once, as in the dry survey
     submerged = d_wet[z_wet < level - 0.01]
     assert np.mean(submerged) <= 3.8  # 3.54 measured (plain OpenCV 3.56; the issue's 2.5 is not met)
+
+
+@pytest.fixture(scope="module")
+def oblique_rig(flume):
+    work, truth, _ = flume
+    assert main(["calibrate", "--left", str(DATA / "calib_oblique" / "*_L.jpg"), "--right",
+                 str(DATA / "calib_oblique" / "*_R.jpg"), "--board", "chessboard:9x6:%g" % truth["square"],
+                 "--origin-left", str(DATA / "origin_oblique_L.jpg"), "--origin-right",
+                 str(DATA / "origin_oblique_R.jpg"), "-o", str(work / "rig_oblique.json")]) == 0
+    return work / "rig_oblique.json"
+
+
+@pytest.mark.parametrize("scene", ["board_wet", "oblique_board_wet"])
+def test_board_error_bars_are_honest_in_every_layer(flume, oblique_rig, scene):
+    """Each point's predicted std normal to the board against its true error, per 5 cm layer: between 85 % and 99 %
+    of the points within 2 sigma, and the predicted RMS within 30 % of the measured (issue #16)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    from experiments.uncertainty import board_errors
+    from jaxstereo._stereo.evaluation import uncertainty_coverage
+
+    work, truth, rig = flume
+    rig_path = work / "rig.json" if scene == "board_wet" else oblique_rig
+    out = work / f"{scene}.npz"  # the nadir board's survey is shared with the test above
+    if not out.exists():
+        assert main(["reconstruct", str(DATA / f"{scene}_L.jpg"), str(DATA / f"{scene}_R.jpg"), "--rig",
+                     str(rig_path), "--water-level", str(truth["scenes"][scene]["water_level"]), "-o", str(out)]) == 0
+    error, sigma, z, _ = board_errors(load_survey(out), json.loads(rig_path.read_text()), truth, scene)
+    layers = uncertainty_coverage(error, sigma, z)
+    assert len(layers) >= 5
+    for layer in layers:
+        # measured: nadir 88-91 %, ratio 0.82-0.91; oblique 97-99 %, ratio 1.02-1.11
+        assert 0.85 <= layer["within_2_sigma"] <= 0.99, layer
+        assert 0.7 <= layer["ratio"] <= 1.3, layer

@@ -1,0 +1,104 @@
+"""Error bars of the damage figures: the sampled noise's own statistics, shared errors that cancel between two
+surveys of one rig, a clear refusal without sigma layers, and the DEM's sigma layers from a survey."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from jaxstereo import DEM, JaxStereoError, Survey, grid_survey, stretch_damage
+from jaxstereo._surface.damage_uncertainty import correlated_noise, damage_sigma
+
+DN50, COT, SWL, ORIGIN = 0.036, 2.0, 0.16, (0.0, 0.0)
+
+
+def test_correlated_noise_has_unit_variance_and_the_box_correlation():
+    rng = np.random.default_rng(0)
+    field = correlated_noise((400, 400), 6, rng)
+    assert np.std(field) == pytest.approx(1.0, abs=0.05)
+    lag = [np.corrcoef(field[:, :-k].ravel(), field[:, k:].ravel())[0, 1] for k in (3, 6)]
+    assert lag[0] == pytest.approx(0.5, abs=0.08)  # a box of 6: triangle correlation 1 - k / 6
+    assert abs(lag[1]) < 0.08
+
+
+def _slope(bump_m=0.0, **layers):
+    x = np.arange(0.0, 0.8, 0.005)
+    y = np.arange(-0.1, 0.1, 0.005)
+    z = np.broadcast_to(x / COT, (y.size, x.size)).copy()
+    hole = (np.abs(x - 0.32) < 0.06)[None, :] & (np.abs(y) < 0.06)[:, None]
+    z[hole] -= bump_m
+    full = {key: np.full(z.shape, value) for key, value in layers.items()}
+    return DEM(x, y, z, 0.005, **full, correlation_m=0.02)
+
+
+def _compute(before, after):
+    return stretch_damage(before, after, DN50, COT, SWL, ORIGIN, foot_radius_m=0.0)
+
+
+def test_a_shared_calibration_cancels_and_an_independent_one_does_not():
+    layers = dict(sigma_match=0.0, sigma_calibration=0.002, sigma_level=0.0)
+    before, after = _slope(**layers), _slope(0.03, **layers)
+    shared = damage_sigma(before, after, _compute, shared_calibration=True, shared_level=False, draws=16)
+    independent = damage_sigma(before, after, _compute, shared_calibration=False, shared_level=False, draws=16)
+    assert shared.sigma["S"] == pytest.approx(0.0, abs=1e-9)  # the same offset in both surveys: no change of S
+    assert independent.sigma["S"] > 0.05  # a 2 mm offset of one survey against the other moves A_e
+
+
+def test_matching_noise_gives_a_sigma_that_grows_with_it():
+    small = damage_sigma(_slope(sigma_match=0.0005, sigma_calibration=0.0, sigma_level=0.0),
+                         _slope(0.03, sigma_match=0.0005, sigma_calibration=0.0, sigma_level=0.0),
+                         _compute, False, False, draws=24)
+    large = damage_sigma(_slope(sigma_match=0.002, sigma_calibration=0.0, sigma_level=0.0),
+                         _slope(0.03, sigma_match=0.002, sigma_calibration=0.0, sigma_level=0.0),
+                         _compute, False, False, draws=24)
+    assert 0 < small.sigma["S"] < large.sigma["S"]
+    assert set(small.profile_S) and all(v >= 0 for v in small.profile_S.values())
+
+
+def test_surfaces_without_sigma_layers_are_refused_with_a_clear_error():
+    with pytest.raises(JaxStereoError, match="no sigma layers"):
+        damage_sigma(_slope(), _slope(0.03), _compute, True, True)
+
+
+def test_grid_survey_keeps_the_sources_apart():
+    """Two points per cell: the shared parts are cell means, the matching part averages only over independent
+    matches (here none: two neighbouring pixels share their window)."""
+    rng = np.random.default_rng(1)
+    n = 400
+    points = np.column_stack([rng.uniform(0, 0.1, n), rng.uniform(0, 0.1, n), np.zeros(n)])
+    cov = np.zeros((n, 6), np.float32)
+    cov[:, 2] = 0.002**2 + 0.001**2 + 0.0005**2
+    rig = {"left": {"R": np.eye(3).tolist(), "t": [0.0, 0.0, -2.0], "fx": 2000.0}, "right": {}}
+    survey = Survey(points, np.zeros((n, 3), np.uint8), np.zeros((n, 2)), np.zeros(n, bool), json.dumps(rig),
+                    "exact", 0.16, cov, np.full(n, 0.002, np.float32), np.full(n, 0.0005, np.float32),
+                    np.zeros(n, np.float32))
+    dem = grid_survey(survey, 0.02)
+    ok = np.isfinite(dem.z)
+    np.testing.assert_allclose(dem.sigma_match[ok], 0.002, rtol=1e-6)
+    np.testing.assert_allclose(dem.sigma_level[ok], 0.0005, rtol=1e-6)
+    np.testing.assert_allclose(dem.sigma_calibration[ok], 0.001, rtol=1e-4)
+    assert dem.correlation_m == pytest.approx(31 * 2.0 / 2000.0, rel=1e-3)  # the window at 2 m
+    assert dataclasses.replace(dem).has_sigma
+
+
+def test_true_S_lies_within_two_sigma_on_synthetic_trials():
+    """Two of the uncertainty experiment's trials (864x576, realistic rigs with calibration errors drawn from the
+    covariance they record, water levels known to 0.5 mm, JPEG): the true S of stages I (a repeat survey), II and
+    III within 2 sigma of the measured S. The experiment runs 20 trials (`python -m experiments uncertainty`)."""
+    import sys
+    from pathlib import Path
+
+    import jax
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    from experiments.uncertainty import trial
+
+    rows = []
+    with jax.enable_x64(True):
+        for seed in (0, 1):
+            rows += trial(seed, log=lambda _: None)
+    for r in rows:
+        assert abs(r["S"] - r["S_true"]) <= 2 * r["sigma"], r  # |S - S_true| / sigma measured 0.5-1.4
+        assert r["sigma"] > 0
+    assert [r["stage"] for r in rows[:3]] == ["I", "II", "III"] and rows[0]["S"] < rows[1]["S"] < rows[2]["S"]
