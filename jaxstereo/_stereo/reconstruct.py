@@ -401,15 +401,20 @@ def _level_std(rig: Rig, water_level: float | None, interface: Interface | None,
     return 0.0
 
 
+SUMMARY_SAMPLE = 100_000
+
+
 def _uncertainty_summary(survey: Survey, shared: SharedErrors, sigma_d) -> dict:
     """Median vertical std (mm) of emerged and submerged points, total and from matching alone; the median
     disparity std (px); the shared parameters' std and which of them the rig recorded."""
-    out = {"median_sigma_disparity_px": float(np.median(sigma_d))}
-    sigma_z = survey.sigma_z
-    for name, sel in (("emerged", ~survey.submerged), ("submerged", survey.submerged)):
+    every = max(1, len(survey) // SUMMARY_SAMPLE)  # medians of a regular sample: the summary's few digits
+    out = {"median_sigma_disparity_px": float(np.median(sigma_d[::every]))}
+    submerged = survey.submerged[::every]
+    sigma_z = np.sqrt(survey.cov[::every, 2])
+    for name, sel in (("emerged", ~submerged), ("submerged", submerged)):
         if sel.any():
             out[f"median_sigma_z_{name}_mm"] = 1e3 * float(np.median(sigma_z[sel]))
-            out[f"median_sigma_z_match_{name}_mm"] = 1e3 * float(np.median(survey.sigma_z_match[sel]))
+            out[f"median_sigma_z_match_{name}_mm"] = 1e3 * float(np.median(survey.sigma_z_match[::every][sel]))
     out["shared_std"] = {k: v for k, v in shared.std.items()}
     out["shared_recorded"] = shared.recorded
     return out

@@ -33,8 +33,8 @@ SHARED_PARAMETERS = ("frame rotation x (rad)", "frame rotation y (rad)", "frame 
                      "right rotation x (rad)", "right rotation y (rad)", "right rotation z (rad)",
                      "right shift x (m)", "right shift y (m)", "right shift z (m)",
                      "focal length (relative)", "water level (m)")
-TABLE_STEP_PX = 48  # table spacing in u and v (pixels)
-TABLE_STEP_DISPARITY_PX = 8  # and in disparity
+TABLE_STEP_PX = 64  # table spacing in u and v (pixels)
+TABLE_STEP_DISPARITY_PX = 16  # and in disparity
 MATCH_CORRELATION_PX = 31  # matches closer than the sub-pixel fit's window share most of it: their errors correlate
 
 
@@ -163,21 +163,28 @@ def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.n
     `dz_subpixel` (k,) float32 metres, the signed vertical offset the estimators' disagreement gives.
     """
     origin, step = table["origin"], table["step"]
-    coords = np.stack([(v - origin[0]) / step[0], (u - origin[1]) / step[1], (disparity - origin[2]) / step[2]], -1)
-    seven = np.array(_trilinear(jnp.asarray(table["table"]), jnp.asarray(coords),
-                                jnp.asarray(submerged.astype(np.int32))))
-    cov, level_zz = seven[:, :6], seven[:, 6]
-    j = dpoint_dd * sigma_d[:, None]
-    jd = dpoint_dd * np.nan_to_num(disagreement)[:, None]
-    for a in (j, jd):
-        cov += np.stack([a[:, 0] ** 2, a[:, 1] ** 2, a[:, 2] ** 2, a[:, 0] * a[:, 1], a[:, 0] * a[:, 2],
-                         a[:, 1] * a[:, 2]], axis=-1)
-    return {"cov": cov.astype(np.float32), "sigma_z_match": np.abs(j[:, 2]).astype(np.float32),
-            "sigma_z_level": np.sqrt(np.maximum(level_zz, 0.0)).astype(np.float32),
-            "dz_subpixel": jd[:, 2].astype(np.float32)}
+    coords = np.stack([(v - origin[0]) / step[0], (u - origin[1]) / step[1], (disparity - origin[2]) / step[2]])
+    f32 = np.float32
+    seven = np.asarray(_interpolate_table(jnp.asarray(table["table"].astype(f32)), jnp.asarray(coords.astype(f32)),
+                                          jnp.asarray(submerged.astype(np.int32))))
+    j = dpoint_dd.T.astype(f32)  # (3, k): column-wise arithmetic, float32 (covariances need no more)
+    match, method = j * sigma_d.astype(f32), j * np.nan_to_num(disagreement).astype(f32)
+    cov = np.empty((len(v), 6), f32)
+    for c, (p, q) in enumerate(zip(*_PAIRS)):
+        cov[:, c] = seven[c] + match[p] * match[q] + method[p] * method[q]
+    return {"cov": cov, "sigma_z_match": np.abs(match[2]), "sigma_z_level": np.sqrt(np.maximum(seven[6], 0.0)),
+            "dz_subpixel": method[2]}
+
+
+_PAIRS = ((0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2))  # the covariance's [xx, yy, zz, xy, xz, yz]
 
 
 @jax.jit
+def _interpolate_table(table, coords_t, cls):
+    """`_trilinear` with coordinates (3, k) in and values (c, k) out."""
+    return _trilinear(table, coords_t.T, cls).T
+
+
 def _trilinear(table, coords, cls):
     """Trilinear interpolation of `table` (2, n0, n1, n2, c) at fractional indices `coords` (k, 3) of the
     sub-table `cls` (k,) (clamped at the edges): (k, c). All channels share one set of corners and weights."""
@@ -185,14 +192,16 @@ def _trilinear(table, coords, cls):
     x = jnp.clip(coords, 0.0, shape - 1.0)
     i0 = jnp.minimum(jnp.floor(x).astype(jnp.int32), jnp.maximum(shape - 2, 0))
     t = x - i0
+    n1, n2 = table.shape[2], table.shape[3]
+    flat = table.reshape(-1, table.shape[-1])
+    base = ((cls * table.shape[1] + i0[:, 0]) * n1 + i0[:, 1]) * n2 + i0[:, 2]
     out = jnp.zeros((coords.shape[0], table.shape[-1]), table.dtype)
     for corner in range(8):
         bits = [(corner >> axis) & 1 for axis in range(3)]
-        index = i0 + jnp.asarray(bits)
         weight = jnp.ones(coords.shape[0], table.dtype)
         for axis, bit in enumerate(bits):
             weight = weight * (t[:, axis] if bit else 1.0 - t[:, axis])
-        out = out + weight[:, None] * table[cls, index[:, 0], index[:, 1], index[:, 2]]
+        out = out + weight[:, None] * jnp.take(flat, base + (bits[0] * n1 + bits[1]) * n2 + bits[2], axis=0)
     return out
 
 

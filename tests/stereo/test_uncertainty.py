@@ -161,3 +161,25 @@ def test_survey_carries_error_bars_that_grow_under_water(x64):
     err = survey.points[inside, 2] - truth[inside]
     assert np.mean(np.abs(err) <= 2 * survey.sigma_z[inside]) >= 0.85
     assert summary["median_sigma_z_match_submerged_mm"] > summary["median_sigma_z_match_emerged_mm"]
+
+
+def test_shared_covariance_table_interpolates_the_exact_jacobians(x64, wet_pair):
+    """The table every 64 px and 16 px of disparity, interpolated, against the shared covariance from the exact
+    Jacobians at the matches themselves: variances within 3 % (2.5 % measured here, 1.3 % on a 1728 px nadir
+    rig), i.e. standard deviations within 1.5 %."""
+    from jaxstereo._stereo.uncertainty import SharedErrors, point_covariances, shared_covariance_table
+
+    left, right, interface, rect, rl, rr = wet_pair
+    std = np.array([5e-4, 5e-4, 2e-4, 1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-5, 1e-5, 1e-5, 3e-4, 5e-4])
+    shared = SharedErrors(np.diag(std**2), {})
+    d = rl[:, 0] - rr[:, 0]
+    search = (int(np.floor(d.min())) - 8, int(np.ceil(d.max() - d.min())) + 16)
+    table = shared_covariance_table(rect, Rig(left, right), interface, shared, left.image_size, search)
+    J = np.asarray(_shared_jacobians(rect, left, right, interface, jnp.asarray(rl), jnp.asarray(rr)))
+    n = len(rl)
+    for cls in (0, 1):
+        exact = np.einsum("nik,kl,njl->nij", J[cls], shared.cov, J[cls])
+        out = point_covariances(table, rl[:, 1], rl[:, 0], d, np.full(n, bool(cls)), np.zeros(n), np.zeros((n, 3)),
+                                np.zeros(n))
+        np.testing.assert_allclose(out["cov"][:, 2], exact[:, 2, 2], rtol=0.03)
+        np.testing.assert_allclose(out["cov"][:, 0], exact[:, 0, 0], rtol=0.03)
