@@ -33,8 +33,8 @@ SHARED_PARAMETERS = ("frame rotation x (rad)", "frame rotation y (rad)", "frame 
                      "right rotation x (rad)", "right rotation y (rad)", "right rotation z (rad)",
                      "right shift x (m)", "right shift y (m)", "right shift z (m)",
                      "focal length (relative)", "water level (m)")
-TABLE_STEP_PX = 64  # table spacing in u and v (pixels)
-TABLE_STEP_DISPARITY_PX = 16  # and in disparity
+TABLE_STEP_PX = 96  # table spacing in u and v (pixels)
+TABLE_STEP_DISPARITY_PX = 8  # and in disparity
 MATCH_CORRELATION_PX = 31  # matches closer than the sub-pixel fit's window share most of it: their errors correlate
 
 

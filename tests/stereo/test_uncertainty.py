@@ -164,9 +164,9 @@ def test_survey_carries_error_bars_that_grow_under_water(x64):
 
 
 def test_shared_covariance_table_interpolates_the_exact_jacobians(x64, wet_pair):
-    """The table every 64 px and 16 px of disparity, interpolated, against the shared covariance from the exact
-    Jacobians at the matches themselves: variances within 3 % (2.5 % measured here, 1.3 % on a 1728 px nadir
-    rig), i.e. standard deviations within 1.5 %."""
+    """The table every 96 px and 8 px of disparity, interpolated, against the shared covariance from the exact
+    Jacobians at the matches themselves: vertical variances within 2 % (1.1 % measured), horizontal within 6 %
+    (5.0 %), i.e. standard deviations within 1 % and 3 %."""
     from jaxstereo._stereo.uncertainty import SharedErrors, point_covariances, shared_covariance_table
 
     left, right, interface, rect, rl, rr = wet_pair
@@ -181,5 +181,5 @@ def test_shared_covariance_table_interpolates_the_exact_jacobians(x64, wet_pair)
         exact = np.einsum("nik,kl,njl->nij", J[cls], shared.cov, J[cls])
         out = point_covariances(table, rl[:, 1], rl[:, 0], d, np.full(n, bool(cls)), np.zeros(n), np.zeros((n, 3)),
                                 np.zeros(n))
-        np.testing.assert_allclose(out["cov"][:, 2], exact[:, 2, 2], rtol=0.03)
-        np.testing.assert_allclose(out["cov"][:, 0], exact[:, 0, 0], rtol=0.03)
+        np.testing.assert_allclose(out["cov"][:, 2], exact[:, 2, 2], rtol=0.02)
+        np.testing.assert_allclose(out["cov"][:, 0], exact[:, 0, 0], rtol=0.06)
