@@ -7,6 +7,7 @@ import dataclasses
 import io
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage
@@ -16,6 +17,9 @@ from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike, Vector2
 from .damage import DemDamage, ProfileDamage, damage_level, dem_damage, profile_damage, slope_abscissa, to_slope_frame
 from .grid import DEM
+
+if TYPE_CHECKING:
+    from .damage_uncertainty import DamageSigma
 
 ACTIVE_ZONE_DN50 = (6.0, 4.0)  # erosion counted from 6 Dn50 below to 4 Dn50 above the SWL, along the slope
 
@@ -250,7 +254,8 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
     )
 
 
-def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir: PathLike, sigma=None) -> list[Path]:
+def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir: PathLike,
+                        sigma: "DamageSigma | None" = None) -> list[Path]:
     """Write `damage.json`, `profiles.csv`, `profile.png` (averaged profiles, eroded area shaded) and
     `difference.png` (DEM difference map) to `out_dir`, each atomically. With `sigma` (a `DamageSigma`), every
     figure's standard deviation goes beside it (`"sigma"` in the JSON, `S_sigma` in the CSV, value +- sigma and

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 
 from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike
+from .._stereo.survey import Survey
 
 SIGMA_LAYERS = ("sigma_match", "sigma_calibration", "sigma_level")
 ERROR_LAYERS = SIGMA_LAYERS + ("dz_subpixel",)
@@ -51,7 +53,7 @@ class DEM:
         method = 0.0 if self.dz_subpixel is None else self.dz_subpixel**2
         return np.sqrt(self.sigma_match**2 + self.sigma_calibration**2 + self.sigma_level**2 + method)
 
-    def with_layers(self, fn) -> "DEM":
+    def with_layers(self, fn: Callable[[np.ndarray], np.ndarray]) -> "DEM":
         """This DEM with `fn` applied to its height and to each of its error layers (ny, nx) -> (ny', nx')."""
         layers = {key: None if getattr(self, key) is None else fn(getattr(self, key)) for key in ERROR_LAYERS}
         return dataclasses.replace(self, z=fn(self.z), **layers)
@@ -115,7 +117,7 @@ def fill_holes(dem: DEM, max_gap_m: float) -> DEM:
     return dem.with_layers(filled)
 
 
-def grid_survey(survey, spacing: float, x: np.ndarray | None = None, y: np.ndarray | None = None,
+def grid_survey(survey: Survey, spacing: float, x: np.ndarray | None = None, y: np.ndarray | None = None,
                 min_count: int = 1) -> DEM:
     """`grid_median` of a survey's points, with each cell's sigma layers when the survey has error bars.
 
