@@ -122,12 +122,10 @@ def damage_sigma(before: DEM, after: DEM, compute: Callable[[DEM, DEM], StretchD
 
 def shares_errors(before: DEM, after: DEM) -> tuple[bool, bool]:
     """Whether two surveys share the calibration's errors (the same cameras) and the water level's (the same
-    level, to the same std, in both: one estimate)."""
+    level to the last digit in both: one estimate, the refined rig's or one gauge reading)."""
     calibration = bool(before.calibration_id) and before.calibration_id == after.calibration_id
-    level = (np.isfinite(before.water_level) and before.water_level == after.water_level
-             and before.has_sigma and after.has_sigma
-             and np.allclose(np.nanmedian(before.sigma_level), np.nanmedian(after.sigma_level)))
-    return calibration, bool(level)
+    level = bool(np.isfinite(before.water_level) and before.water_level == after.water_level)
+    return calibration, level
 
 
 def stretch_damage_with_sigma(before: DEM, after: DEM, *args, draws: int = DRAWS, **kwargs

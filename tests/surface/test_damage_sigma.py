@@ -102,3 +102,12 @@ def test_true_S_lies_within_two_sigma_on_synthetic_trials():
         assert abs(r["S"] - r["S_true"]) <= 2 * r["sigma"], r  # |S - S_true| / sigma measured 0.5-1.4
         assert r["sigma"] > 0
     assert [r["stage"] for r in rows[:3]] == ["I", "II", "III"] and rows[0]["S"] < rows[1]["S"] < rows[2]["S"]
+
+
+def test_surveys_share_the_rig_and_the_level_they_were_made_with():
+    from jaxstereo._surface.damage_uncertainty import shares_errors
+
+    a = dataclasses.replace(_slope(), calibration_id="abc", water_level=0.158)
+    assert shares_errors(a, dataclasses.replace(a)) == (True, True)
+    assert shares_errors(a, dataclasses.replace(a, water_level=0.16)) == (True, False)
+    assert shares_errors(a, dataclasses.replace(a, calibration_id="xyz", water_level=float("nan"))) == (False, False)
