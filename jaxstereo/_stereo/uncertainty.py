@@ -9,7 +9,11 @@ Two kinds of error, kept apart because they behave differently downstream:
   camera's pose relative to the left 6, the focal length 1) and the water level (1), with the covariance
   the calibration and `refine` recorded in the rig. Their effect on a point is the (3, 14) Jacobian of the
   triangulation with respect to them, computed exactly on a table over (u, v, disparity) for emerged and
-  for submerged points, and interpolated to each match (it is smooth in all three).
+  for submerged points, and interpolated to each match (it is smooth in all three);
+- the **sub-pixel estimators' disagreement** (`refine_disparity`): a systematic offset of unknown sign,
+  correlated over the window, carried by the same derivative as the matching's.
+
+`grid_survey` keeps them apart as DEM layers and `damage_sigma` samples them through the damage.
 """
 
 from __future__ import annotations
