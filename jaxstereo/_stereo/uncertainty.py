@@ -39,6 +39,7 @@ SHARED_PARAMETERS = ("frame rotation x (rad)", "frame rotation y (rad)", "frame 
                      "focal length (relative)", "water level (m)")
 TABLE_STEP_PX = 96  # table spacing in u and v (pixels)
 TABLE_STEP_DISPARITY_PX = 8  # and in disparity
+INTERPOLATION_CHUNK = 1 << 17  # matches per compiled interpolation call
 MATCH_CORRELATION_PX = 31  # matches closer than the sub-pixel fit's window share most of it: their errors correlate
 
 
@@ -141,9 +142,12 @@ def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface 
     ds = np.arange(search[0], search[0] + search[1] + TABLE_STEP_DISPARITY_PX, TABLE_STEP_DISPARITY_PX,
                    dtype=np.float64)
     V, U, D = np.meshgrid(vs, us, ds, indexing="ij")
-    rl = jnp.asarray(np.stack([U.ravel(), V.ravel()], axis=-1))
-    rr = jnp.asarray(np.stack([U.ravel() - D.ravel(), V.ravel()], axis=-1))
-    J = np.asarray(_shared_jacobians_jit(rect, rig.left, rig.right, interface, rl, rr))
+    n = V.size
+    padded = 1 << max(10, int(np.ceil(np.log2(n))))  # a few compiled sizes, not one per search range
+    rl = np.stack([U.ravel(), V.ravel()], axis=-1)
+    rr = np.stack([U.ravel() - D.ravel(), V.ravel()], axis=-1)
+    rl, rr = (jnp.asarray(np.pad(a, ((0, padded - n), (0, 0)), mode="edge")) for a in (rl, rr))
+    J = np.asarray(_shared_jacobians_jit(rect, rig.left, rig.right, interface, rl, rr))[:, :n]
     cov = np.einsum("cnik,kl,cnjl->cnij", J, shared.cov, J)
     level_zz = J[..., 2, 13] ** 2 * shared.cov[13, 13]
     seven = np.stack([cov[..., 0, 0], cov[..., 1, 1], cov[..., 2, 2], cov[..., 0, 1], cov[..., 0, 2], cov[..., 1, 2],
@@ -169,8 +173,15 @@ def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.n
     origin, step = table["origin"], table["step"]
     coords = np.stack([(v - origin[0]) / step[0], (u - origin[1]) / step[1], (disparity - origin[2]) / step[2]])
     f32 = np.float32
-    seven = np.asarray(_interpolate_table(jnp.asarray(table["table"].astype(f32)), jnp.asarray(coords.astype(f32)),
-                                          jnp.asarray(submerged.astype(np.int32))))
+    values = jnp.asarray(table["table"].astype(f32))
+    seven = np.empty((7, len(v)), f32)
+    for start in range(0, len(v), INTERPOLATION_CHUNK):  # fixed-size chunks: compiled once, whatever the count
+        part = slice(start, start + INTERPOLATION_CHUNK)
+        count = coords[:, part].shape[1]
+        pad = INTERPOLATION_CHUNK - count
+        c = np.pad(coords[:, part], ((0, 0), (0, pad))).astype(f32)
+        cls = np.pad(submerged[part].astype(np.int32), (0, pad))
+        seven[:, part] = np.asarray(_interpolate_table(values, jnp.asarray(c), jnp.asarray(cls)))[:, :count]
     j = dpoint_dd.T.astype(f32)  # (3, k): column-wise arithmetic, float32 (covariances need no more)
     match, method = j * sigma_d.astype(f32), j * np.nan_to_num(disagreement).astype(f32)
     cov = np.empty((len(v), 6), f32)
