@@ -95,17 +95,18 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
 
     The standard deviation is the least-squares one, `sqrt(s2 / sum(g^2))` with `s2` the patch's residual
     variance at the estimate (linearised about the lower whole-pixel bases) and `g` the right image's
-    horizontal gradient, over the `window` patch where the
-    refined value is kept (times `MATCH_NOISE_SCALE`) and over a `sigma_window` patch (SGBM's block) at
-    SGBM's value elsewhere and everywhere when `subpixel` is False (times `SGBM_NOISE_SCALE`).
-
-    **Arguments:** rectified `left`, `right` images (grey or RGB, uint8); `disparity` (h, w) pixels, NaN for
-    no match (`x_right = x_left - d`); `row_offset` (h, w) pixels or None.
+    horizontal gradient: over the `window` patch where the refined value is kept (times `MATCH_NOISE_SCALE`),
+    over a `sigma_window` patch (SGBM's block) at SGBM's value elsewhere, and everywhere when `subpixel` is
+    False (times `SGBM_NOISE_SCALE`).
 
     The two sub-pixel estimators are compared too: SGBM's own value minus the refined one, averaged over the
     `window` around each pixel and less the part SGBM's own noise explains, is their systematic disagreement.
     Neither is known to be right on a given texture (Lucas-Kanade is better on fine speckle, SGBM's own values
     on rubble seen at coarse resolution), so it counts as an error of the survey.
+
+    **Arguments:** rectified `left`, `right` images (grey or RGB, uint8); `disparity` (h, w) pixels, NaN for
+    no match (`x_right = x_left - d`); `row_offset` (h, w) pixels or None; `subpixel` False keeps SGBM's
+    values; `with_sigma` False skips the standard deviation and the disagreement.
 
     **Returns:** a `Subpixel`: the refined `disparity` (h, w), its standard deviation `sigma` (h, w) and the
     estimators' `disagreement` (h, w), all pixels, NaN where the input was NaN; `sigma` and `disagreement` are
@@ -122,7 +123,7 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     weight = valid.astype(np.float32)
     base = np.floor(d0).astype(np.int64)
     fraction = d0 - base
-    shift = float(np.median(base[valid])) if valid.any() else 0.0  # keeps the sums' terms small (float64 anyway)
+    shift = float(np.median(base[valid])) if valid.any() else 0.0  # keeps the float32 sums' k terms small
     products = []
     L32 = L.astype(np.float32)
     for k, residuals in ((base, with_sigma), (base + 1, False)):  # the residual's terms at the lower base only
