@@ -96,6 +96,9 @@ def test_reconstruct_broken_input(files, tmp_path, capfd):
     code = main(["reconstruct", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
                  "--water-level", "3.0", "-o", str(out / "s.npz")])
     _check(capfd, code, "below the water plane", out)
+    code = main(["reconstruct", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
+                 "--water-level", str(LEVEL), "--water-level-std", "-1", "-o", str(out / "s.npz")])
+    _check(capfd, code, "water_level_std_m must be a finite number >= 0", out)
 
 
 def test_refine_broken_input(files, tmp_path, capfd):
@@ -159,7 +162,9 @@ def test_demo_and_incidence_report_broken_input(tmp_path, capfd):
     (tmp_path / "a_file").write_text("x")
     _check(capfd, main(["demo", "-o", str(tmp_path / "a_file")]), "is a file, not a folder", out)
     for option, value, text in (("--height", "-2", "height_m must be positive"), ("--n-water", "0.9", "n_water"),
-                                ("--step-deg", "0", "--step-deg must be positive")):
+                                ("--step-deg", "0", "--step-deg must be positive"),
+                                ("--disparity-noise", "0", "disparity_noise_px must be positive"),
+                                ("--sigma-depths", "-0.1", "sigma_depths_m must be positive depths")):
         code = main(["incidence-report", option, value, "-o", str(out / "inc.png")])
         _check(capfd, code, text, out)
 
