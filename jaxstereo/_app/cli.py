@@ -161,10 +161,12 @@ def _cmd_reconstruct(args) -> int:
     from .._stereo.survey import plot_survey_preview, save_ply, save_survey, survey_summary_json
     from .images import check_pair, read_image
     from .io import write_text_atomic
+    from .plots import import_matplotlib_in_background
 
     output = Path(args.output)
     if output.suffix != ".npz":
         raise JaxStereoError(f"output {args.output!r} must end in .npz")
+    import_matplotlib_in_background()  # for the preview, while the survey is computed
     start = time.perf_counter()
     rig = load_rig(args.rig)
     left = read_image(args.left)

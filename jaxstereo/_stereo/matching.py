@@ -116,12 +116,16 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     Rimg = _channels(right)
     h, w = L.shape[:2]
     valid = np.isfinite(disparity)
-    d0 = np.where(valid, disparity, 0.0).astype(np.float64)
-    v, u = np.mgrid[0:h, 0:w]
-    rows = v if row_offset is None else np.clip(np.rint(v + np.where(valid, row_offset, 0.0)).astype(np.int64), 0, h - 1)
+    d0 = np.where(valid, disparity, 0.0).astype(np.float32)
+    # The right image is sampled at whole pixels through cv2.remap's nearest-neighbour lookup (a gather,
+    # clamped at the borders), on row `rows` and column u - k.
+    rows = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
+    if row_offset is not None:
+        rows = np.clip(np.rint(rows + np.where(valid, row_offset, 0.0)), 0, h - 1).astype(np.float32)
+    columns = np.arange(w, dtype=np.float32)[None, :]
     gradient = cv2.Sobel(Rimg, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8).reshape(Rimg.shape)
     weight = valid.astype(np.float32)
-    base = np.floor(d0).astype(np.int64)
+    base = np.floor(d0)
     fraction = d0 - base
     shift = float(np.median(base[valid])) if valid.any() else 0.0  # keeps the float32 sums' k terms small
     products = []
@@ -129,10 +133,8 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     for k, residuals in ((base, with_sigma), (base + 1, False)):  # the residual's terms at the lower base only
         if not (subpixel or residuals):
             continue
-        cols = np.clip(u - k, 0, w - 1)
-        g = gradient[rows, cols]
-        r = L32 - Rimg[rows, cols]
-        products.append(_fit_products(g, r, (k - shift).astype(np.float32), weight, residuals))
+        g, sampled = (_gather(image, columns - k, rows) for image in (gradient, Rimg))
+        products.append(_fit_products(g, L32 - sampled, k - np.float32(shift), weight, residuals))
     channels = L.shape[2]
     sigma_sgbm = None
     if with_sigma:
@@ -149,8 +151,9 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
         sigma_refined = MATCH_NOISE_SCALE * np.sqrt(s2 / np.maximum(gg, 1e-12))
     box = (window, window)
     count = cv2.boxFilter(weight, -1, box, normalize=False)
-    mean = cv2.boxFilter(d0 * weight, -1, box, normalize=False) / np.maximum(count, 1)
-    square = cv2.boxFilter(d0 * d0 * weight, -1, box, normalize=False) / np.maximum(count, 1)
+    centred = (d0 - np.float32(shift)) * weight  # small numbers: the float32 variance stays exact enough
+    mean = cv2.boxFilter(centred, -1, box, normalize=False) / np.maximum(count, 1)
+    square = cv2.boxFilter(centred * centred, -1, box, normalize=False) / np.maximum(count, 1)
     smooth = np.sqrt(np.maximum(square - mean * mean, 0.0)) <= max_spread_px
     keep = valid & smooth & (count >= 0.5 * window * window) & (np.abs(refined - d0) < 1.0)
     sigma = disagreement = None
@@ -172,11 +175,11 @@ def _disagreement(sgbm, refined, keep, sigma_sgbm, window: int, block: int):
     """SGBM's value minus the refined one, averaged over each `window` where the refined value was kept, shrunk
     by the variance SGBM's own noise leaves in that mean (its errors are correlated over a `block`-wide
     square): a systematic offset between the estimators, zero where none shows (h, w) pixels."""
-    k = keep.astype(np.float64)
+    k = keep.astype(np.float32)
     box = (window, window)
     count = np.maximum(cv2.boxFilter(k, -1, box, normalize=False), 1.0)
-    mean = cv2.boxFilter(np.where(keep, sgbm - refined.astype(np.float64), 0.0), -1, box, normalize=False) / count
-    spread = np.minimum(sigma_sgbm.astype(np.float64), 1.0)  # beyond 1 px a match is dropped anyway
+    mean = cv2.boxFilter(np.where(keep, sgbm - refined, np.float32(0.0)), -1, box, normalize=False) / count
+    spread = np.minimum(sigma_sgbm, np.float32(1.0))  # beyond 1 px a match is dropped anyway
     noise = cv2.boxFilter(k * spread**2, -1, box, normalize=False) / count * block**2 / count
     return np.sign(mean) * np.sqrt(np.maximum(mean**2 - noise, 0.0))
 
@@ -213,6 +216,12 @@ def _evaluate(fit, d):
     gg, ggk, _, rg, n, rr, rgk, ggkk = fit
     rss = rr + 2 * d * rg - 2 * rgk + d * d * gg - 2 * d * ggk + ggkk
     return gg, np.maximum(rss, 0.0) / np.maximum(n - 1, 1)
+
+
+def _gather(image: np.ndarray, columns: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """`image[rows, columns]` (h, w, c) float32 for whole-pixel float32 maps (h, w), clamped at the borders."""
+    out = cv2.remap(image, columns.astype(np.float32), rows, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(*rows.shape, image.shape[2])
 
 
 def _masked(values, valid):
