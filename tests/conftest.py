@@ -1,11 +1,20 @@
+import importlib
+import pkgutil
+
 import numpy as np
 import pytest
 from jaxtyping import install_import_hook
 
 # Every function of the package is checked against its annotations (jaxtyping shapes and dtypes through
-# beartype) while the suite runs: the hook must be in place before anything imports jaxstereo.
+# beartype) while the suite runs: the hook must be in place when each module is imported. The package
+# imports its modules lazily, so every one of them is imported here, under the hook (not `__main__`, which
+# runs the command line).
 with install_import_hook("jaxstereo", "typecheck.checker"):
-    import jaxstereo  # noqa: F401
+    import jaxstereo
+
+    for module in pkgutil.walk_packages(jaxstereo.__path__, "jaxstereo."):
+        if not module.name.endswith("__main__"):
+            importlib.import_module(module.name)
 
 # No global `jax_enable_x64` here: the library runs its geometry in float64 by construction, so the suite
 # exercises what a user gets with JAX's default settings (`tests/geometry/test_precision.py` checks it).

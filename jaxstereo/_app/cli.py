@@ -176,8 +176,11 @@ def _cmd_reconstruct(args) -> int:
     z_range = tuple(args.z_range) if args.z_range else None
     if z_range is not None and not z_range[0] < z_range[1]:
         raise JaxStereoError(f"--z-range must be ZMIN ZMAX with ZMIN < ZMAX, got {args.z_range}")
+    if not (args.photometric_ratio >= 0):
+        raise JaxStereoError(f"--photometric-ratio must be >= 0 (0 keeps every match), got {args.photometric_ratio}")
     options = ReconstructOptions(model=args.model, z_range_m=z_range, match=MatchOptions(block_size=args.block_size),
-                                 water_level_std_m=args.water_level_std)
+                                 water_level_std_m=args.water_level_std,
+                                 max_photometric_ratio=args.photometric_ratio or None)
     survey, summary = reconstruct(left, right, rig, args.water_level, options)
     start = time.perf_counter()
     save_survey(survey, output)
@@ -199,7 +202,8 @@ def _cmd_reconstruct(args) -> int:
           f"{summary['vertical_parallax_px_max']:.3f} px mean / max (under water; matches moved onto it)")
     print(f"  dropped                     {summary['dropped_rays_apart']} rays apart, "
           f"{summary['dropped_outside_height_range']} outside the height range, "
-          f"{summary['dropped_undetermined']} not determined (disparity std over 1 px)")
+          f"{summary['dropped_undetermined']} not determined (disparity std over 1 px), "
+          f"{summary['dropped_photometric']} colours unlike their neighbours' matches")
     _print_sigma(summary)
     for stage, seconds in summary["seconds"].items():
         print(f"  {stage:<27} {seconds:.2f}")

@@ -121,6 +121,9 @@ def _add_reconstruct(sub) -> None:
                    help="height range of the scene, m: bounds the disparity search and every point (default -0.03 to "
                         "level + 0.4)")
     p.add_argument("--block-size", type=int, default=5, help="SGBM block size, pixels (odd, default 5)")
+    p.add_argument("--photometric-ratio", type=float, default=2.5,
+                   help="drop matches whose colour residual exceeds this multiple of the median residual of the "
+                        "matches around them (default 2.5; 0 keeps every match)")
     p.add_argument("-o", "--output", required=True, help="survey .npz to write")
     p.add_argument("--ply", help="also write the points as PLY")
     p.add_argument("--preview", help="preview PNG (default: next to the survey, *_preview.png)")

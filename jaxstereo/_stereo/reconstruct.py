@@ -33,6 +33,7 @@ from .._geometry.refraction import intersect_plane
 from .._geometry.triangulate import triangulate_rays
 from .epipolar import disparity_bounds, exact_row_offset, triangulate_exact
 from .matching import MatchOptions, Subpixel, disparity_search_range, refine_disparity, sgbm_disparity
+from .photometric import MAX_RESIDUAL_RATIO, photometric_outliers
 from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, remap
 from .survey import Survey
 from .uncertainty import SharedErrors, point_covariances, shared_covariance_table, shared_errors
@@ -58,6 +59,10 @@ class ReconstructOptions:
     sub-pixel values; `max_sigma_disparity_px` drop matches whose disparity's standard deviation (from the
     matching itself, see `refine_disparity`) exceeds this: the images do not place them; `uncertainty`
     propagate each point's covariance (`Survey.cov`, see `jaxstereo._stereo.uncertainty`);
+    `max_photometric_ratio` drop matches whose colour residual exceeds this multiple of their neighbours'
+    (see `photometric_outliers`; on the POV-Ray flume's rubble the submerged MAE falls from 3.5 to 2.3 mm
+    and its p95 from 11.5 to 6.8 mm, a quarter of the armoured slope's matches dropped; its boards lose
+    0.1 %); None keeps them;
     `water_level_std_m` the water level's standard deviation (metres) for the points' covariance (default:
     the one `refine` recorded for the rig's own level, else 0: a level given as a number is exact).
     """
@@ -72,6 +77,7 @@ class ReconstructOptions:
     subpixel: bool = True
     subpixel_window: int = 31
     water_level_std_m: float | None = None
+    max_photometric_ratio: float | None = MAX_RESIDUAL_RATIO
 
     def __post_init__(self):
         if self.model not in MODELS:
@@ -80,6 +86,8 @@ class ReconstructOptions:
             raise JaxStereoError(f"max_ray_gap_px must be positive, got {self.max_ray_gap_px}")
         if not self.max_sigma_disparity_px > 0:
             raise JaxStereoError(f"max_sigma_disparity_px must be positive, got {self.max_sigma_disparity_px}")
+        if self.max_photometric_ratio is not None and not self.max_photometric_ratio > 0:
+            raise JaxStereoError(f"max_photometric_ratio must be positive (or None), got {self.max_photometric_ratio}")
         if self.water_level_std_m is not None and not (np.isfinite(self.water_level_std_m)
                                                       and self.water_level_std_m >= 0):
             raise JaxStereoError(f"water_level_std_m must be a finite number >= 0 metres, got {self.water_level_std_m}")
@@ -250,8 +258,9 @@ def reconstruct(
     With the exact model every match is then moved onto its exact epipolar curve (the row where its
     exact point projects; refraction bends it) and refined along it, and each pixel's one match is
     triangulated: in air when its in-air point lies above the water, through the exact refraction
-    otherwise. Matches whose rays miss each other by more than `max_ray_gap_px`, and points outside
-    the height range, are dropped.
+    otherwise. Matches whose colours disagree far more than their neighbours' (`photometric_outliers`),
+    matches whose rays miss each other by more than `max_ray_gap_px`, and points outside the height range
+    are dropped.
 
     **Arguments:**
 
@@ -284,6 +293,13 @@ def reconstruct(
                                 with_sigma=options.uncertainty)
     disparity, undetermined = _drop_undetermined(subpixel, options.max_sigma_disparity_px)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
+    photometric = 0
+    if options.max_photometric_ratio is not None and np.isfinite(disparity).any():  # none: refused below
+        t1 = time.perf_counter()
+        outliers = photometric_outliers(rect_l, rect_r, disparity, offset, options.max_photometric_ratio)
+        photometric = int(np.count_nonzero(outliers))
+        disparity = np.where(outliers, np.nan, disparity)
+        timings["photometric check (s)"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
     kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px,
@@ -306,6 +322,7 @@ def reconstruct(
         "disparity_search_px": [search[0], search[0] + search[1]],
         **kept.counts,
         "dropped_undetermined": undetermined,
+        "dropped_photometric": photometric,
         "vertical_parallax_px_mean": float(np.mean(np.abs(under))) if under.size else 0.0,
         "vertical_parallax_px_max": float(np.max(np.abs(under))) if under.size else 0.0,
         "median_ray_gap_px": kept.median_gap_px,
