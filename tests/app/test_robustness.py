@@ -99,6 +99,9 @@ def test_reconstruct_broken_input(files, tmp_path, capfd):
     code = main(["reconstruct", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
                  "--water-level", str(LEVEL), "--water-level-std", "-1", "-o", str(out / "s.npz")])
     _check(capfd, code, "water_level_std_m must be a finite number >= 0", out)
+    code = main(["reconstruct", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
+                 "--water-level", str(LEVEL), "--photometric-ratio", "-2", "-o", str(out / "s.npz")])
+    _check(capfd, code, "--photometric-ratio must be >= 0", out)
 
 
 def test_refine_broken_input(files, tmp_path, capfd):
