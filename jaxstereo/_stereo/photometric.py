@@ -55,7 +55,7 @@ def photometric_residual(left: np.ndarray, right: np.ndarray, disparity: np.ndar
 def local_residual_scale(residual: np.ndarray, block: int = SCALE_BLOCK_PX) -> np.ndarray:
     """The median residual of the matches in each `block` x `block` square, interpolated bilinearly between
     the squares' centres (h, w) float32. Squares with fewer matches than an eighth of their pixels take
-    the median over the whole image. The median (of residuals quantised to 1/4 grey level) is robust to the
+    the median over the whole image. The median (of residuals quantised to 1/4 grey level and capped at 256) is robust to the
     mismatches it is meant to expose, as long as they are a minority of the square."""
     h, w = residual.shape
     valid = np.isfinite(residual)
