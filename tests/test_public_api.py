@@ -37,3 +37,17 @@ def test_the_public_api_is_large_and_from_the_stage_packages():
     modules = {fn.__module__.split(".")[1] for _, fn in _public_callables()}
     assert modules == {"_geometry", "_calibration", "_stereo", "_surface", "_synthetic", "_app"}
     assert sum(1 for _ in _public_callables()) > 100
+
+
+def test_the_lazy_name_table_and_the_type_checkers_imports_agree():
+    """`__init__.py` names each public name twice: in `_PUBLIC` (what `jaxstereo.X` imports on first use) and
+    in its `TYPE_CHECKING` block (what editors and type checkers read). They must not drift apart."""
+    import ast
+    from pathlib import Path
+
+    tree = ast.parse(Path(js.__file__).read_text())
+    block = next(node for node in tree.body if isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING")
+    static = {(node.module, alias.name) for node in block.body if isinstance(node, ast.ImportFrom) for alias in node.names}
+    lazy = {(module, name) for module, names in js._PUBLIC.items() for name in names}
+    assert static == lazy
+    assert sorted(js.__all__) == sorted(name for _, name in lazy)
