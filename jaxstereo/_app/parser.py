@@ -124,6 +124,9 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--photometric-ratio", type=float, default=2.5,
                    help="drop matches whose colour residual exceeds this multiple of the median residual of the "
                         "matches around them (default 2.5; 0 keeps every match)")
+    p.add_argument("--one-way", action="store_true",
+                   help="skip matching the right image against the left (about 0.3 s less on a 2-megapixel pair; "
+                        "keeps more foreground disparities carried past occluding edges)")
     p.add_argument("-o", "--output", required=True, help="survey .npz to write")
     p.add_argument("--ply", help="also write the points as PLY")
     p.add_argument("--preview", help="preview PNG (default: next to the survey, *_preview.png)")

@@ -83,3 +83,23 @@ def test_reconstruct_command_bad_input(pair, tmp_path, capsys):
     black = np.zeros((288, 432, 3), np.uint8)
     with pytest.raises(js.JaxStereoError, match="no matches survived"):
         js.reconstruct(black, black, load_rig(root / "rig.json"), 0.18)
+
+
+def test_one_way_flag_keeps_every_match_the_second_run_would_drop(pair, tmp_path, capsys):
+    """`--one-way` skips matching the right image against the left: a superset of the two-way survey's pixels,
+    with the same points where both have one."""
+    root, _ = pair
+    surveys = {}
+    for flag in ((), ("--one-way",)):
+        out = tmp_path / ("one" if flag else "two")
+        assert main(["reconstruct", str(root / "left.png"), str(root / "right.png"), "--rig", str(root / "rig.json"),
+                     "--water-level", "0.18", "-o", str(out / "survey.npz"), *flag]) == 0
+        surveys[bool(flag)] = load_survey(out / "survey.npz")
+    one, two = surveys[True], surveys[False]
+
+    def key(s):
+        return np.rint(s.pixels * 4).astype(np.int64) @ np.array([1, 1 << 20])
+
+    common, i_one, i_two = np.intersect1d(key(one), key(two), return_indices=True)
+    assert len(one) > len(two) and common.size > 0.97 * len(two)
+    assert np.median(np.abs(one.points[i_one, 2] - two.points[i_two, 2])) < 1e-4
