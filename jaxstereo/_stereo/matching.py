@@ -66,7 +66,8 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, min_disparity: int, num_
         raise JaxStereoError(f"rectified images differ in shape: {left.shape} vs {right.shape}")
     disparity = _one_way(left, right, min_disparity, num_disparities, options)
     if options.two_way:
-        _cross_check(disparity, _one_way(right[:, ::-1], left[:, ::-1], min_disparity, num_disparities, options)[:, ::-1],
+        mirrored = [np.ascontiguousarray(image[:, ::-1]) for image in (right, left)]
+        _cross_check(disparity, _one_way(*mirrored, min_disparity, num_disparities, options)[:, ::-1],
                      options.disp12_max_diff)
     return disparity
 
