@@ -178,7 +178,8 @@ def _cmd_reconstruct(args) -> int:
         raise JaxStereoError(f"--z-range must be ZMIN ZMAX with ZMIN < ZMAX, got {args.z_range}")
     if not (args.photometric_ratio >= 0):
         raise JaxStereoError(f"--photometric-ratio must be >= 0 (0 keeps every match), got {args.photometric_ratio}")
-    options = ReconstructOptions(model=args.model, z_range_m=z_range, match=MatchOptions(block_size=args.block_size, two_way=not args.one_way),
+    options = ReconstructOptions(model=args.model, z_range_m=z_range,
+                                 match=MatchOptions(block_size=args.block_size, two_way=not args.one_way),
                                  water_level_std_m=args.water_level_std,
                                  max_photometric_ratio=args.photometric_ratio or None)
     survey, summary = reconstruct(left, right, rig, args.water_level, options)

@@ -85,7 +85,7 @@ def test_reconstruct_command_bad_input(pair, tmp_path, capsys):
         js.reconstruct(black, black, load_rig(root / "rig.json"), 0.18)
 
 
-def test_one_way_flag_keeps_every_match_the_second_run_would_drop(pair, tmp_path, capsys):
+def test_one_way_flag_keeps_every_match_the_second_run_would_drop(pair, tmp_path):
     """`--one-way` skips matching the right image against the left: a superset of the two-way survey's pixels,
     with the same points where both have one."""
     root, _ = pair
