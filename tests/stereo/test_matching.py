@@ -1,4 +1,4 @@
-"""SGBM matching: the two-way consistency check, on a pair with known disparities."""
+"""SGBM matching: the two-way consistency check and the fattening filter, on a pair with known disparities."""
 
 import cv2
 import numpy as np
@@ -45,6 +45,22 @@ def test_two_way_check_removes_matches_the_one_way_check_lets_through():
     assert wrong_one > 1000  # the case is hard: SGBM's own left-right check passes many wrong matches
     assert wrong_two < 0.4 * wrong_one
     assert right_two > 0.97 * right_one  # and the correct ones stay
+
+
+def test_sgbm_fattening_beside_a_textured_square_is_dropped():
+    """The analytic pair above: the two-way check leaves a few hundred background pixels with the
+    square's disparity; at the square's outline the filter drops most of them and few correct matches."""
+    left, right, truth = _square_over_fine_speckle()
+    counts = {}
+    for reach in (0, 12):
+        d = sgbm_disparity(left, right, 0, 48, MatchOptions(fattening_reach_px=reach))
+        found = np.isfinite(d)
+        wrong = found & (np.abs(d - truth) > 1.5)
+        counts[reach] = (int(wrong.sum()), int((found & ~wrong).sum()))
+    (wrong_before, right_before), (wrong_after, right_after) = counts[0], counts[12]
+    assert wrong_before > 200
+    assert wrong_after < 0.5 * wrong_before
+    assert right_after > 0.98 * right_before
 
 
 def test_cross_check_against_a_numpy_reference():
