@@ -128,7 +128,7 @@ def _cross_check(disparity, right_disparity, tolerance_px):
 
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,
-                     window: int = 31, max_spread_px: float = 0.5, sigma_window: int = 5,
+                     window: int = 31, small_window: int | None = 15, sigma_window: int = 5,
                      subpixel: bool = True, with_sigma: bool = True) -> Subpixel:
     """Sub-pixel disparities by Lucas-Kanade over a `window` x `window` patch, from whole-pixel bases, and
     each disparity's standard deviation from the fit's own residuals.
@@ -138,9 +138,13 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     disparities floor(d) and floor(d) + 1 of the pixels in the patch (right image sampled at whole pixels,
     never interpolated: interpolation blurs fine texture by an amount that depends on the fraction, and
     dense steps from fractional starts mix the neighbours' own shifts), and the two estimates weighted by
-    SGBM's fraction. It is kept only where the patch's SGBM disparities agree within `max_spread_px`
+    SGBM's fraction. It is kept only where the patch's SGBM disparities agree within `MAX_SPREAD_PX`
     (standard deviation; a smooth surface, not an edge) and it stays within 1 px of SGBM's; elsewhere
-    SGBM's value is kept. Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them.
+    SGBM's value is kept. With a `small_window`, the same fit over that smaller patch replaces the large
+    one's where the two differ by more than `WINDOW_AGREEMENT` standard deviations of their difference (or
+    only the small one is kept): a curved surface (rubble) whose relief the large patch averages over. On the
+    POV-Ray flume's rubble the 31 px patch smooths rocks 0.6 Dn50 wide; the 15 px patch there brings the
+    wet and dry surveys' median difference from 1.65 to 1.3 mm, while the flat board keeps the large patch. Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them.
     On the POV-Ray flume's board: 0.18 px RMS against SGBM's 0.29 px, bias 0.01 px against 0.04.
 
     The standard deviation is the least-squares one, `sqrt(s2 / sum(g^2))` with `s2` the patch's residual
@@ -155,7 +159,8 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     on rubble seen at coarse resolution), so it counts as an error of the survey.
 
     **Arguments:** rectified `left`, `right` images (grey or RGB, uint8); `disparity` (h, w) pixels, NaN for
-    no match (`x_right = x_left - d`); `row_offset` (h, w) pixels or None; `subpixel` False keeps SGBM's
+    no match (`x_right = x_left - d`); `row_offset` (h, w) pixels or None; `window`, `small_window` (None:
+    the large one only) odd patch widths, pixels; `subpixel` False keeps SGBM's
     values; `with_sigma` False skips the standard deviation and the disagreement.
 
     **Returns:** a `Subpixel`: the refined `disparity` (h, w), its standard deviation `sigma` (h, w) and the
@@ -193,6 +198,35 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     if not subpixel:
         zero = None if sigma_sgbm is None else np.zeros_like(d0)
         return Subpixel(_masked(d0, valid), _masked(sigma_sgbm, valid), _masked(zero, valid))
+    refined, sigma_refined, keep = _refine_in_windows(products, d0, shift, fraction, weight, valid, window, channels,
+                                                      with_sigma)
+    if small_window is not None and small_window < window:
+        # Where the surface is curved within the large window (rubble), its fit averages over the relief; the
+        # small window's fit is taken where the two disagree by more than their difference's noise.
+        small, sigma_small, keep_small = _refine_in_windows(products, d0, shift, fraction, weight, valid,
+                                                            small_window, channels, True)
+        large_sigma = sigma_refined if sigma_refined is not None else np.zeros_like(small)
+        noise = np.sqrt(np.maximum(sigma_small**2 - large_sigma**2, 0.0))
+        use_small = keep_small & (~keep | ~(np.abs(refined - small) <= WINDOW_AGREEMENT * noise))
+        refined = np.where(use_small, small, refined)
+        if sigma_refined is not None:
+            sigma_refined = np.where(use_small, sigma_small, sigma_refined)
+        keep = keep | use_small
+    sigma = disagreement = None
+    if with_sigma:
+        sigma = np.where(keep, sigma_refined, sigma_sgbm)
+        disagreement = _disagreement(d0, refined, keep, sigma_sgbm, window, sigma_window)
+    return Subpixel(_masked(np.where(keep, refined, d0), valid), _masked(sigma, valid), _masked(disagreement, valid))
+
+
+WINDOW_AGREEMENT = 3.0  # the large window's value stands where the small one's is within 3 sigma of it
+
+
+def _refine_in_windows(products, d0, shift, fraction, weight, valid, window: int, channels: int, with_sigma: bool):
+    """Lucas-Kanade over `window` x `window` patches (see `refine_disparity`): the refined disparities (h, w),
+    their standard deviations (h, w, or None without `with_sigma`), and where they are kept (h, w) bool: the
+    patch's SGBM disparities agree within `max_spread_px`, it is at least half matched, and the refined
+    value stays within 1 px of SGBM's."""
     fits = [_window_fit(p, (window, window), channels) for p in products]
     refined = (1 - fraction) * (fits[0][2] + shift) + fraction * (fits[1][2] + shift)
     sigma_refined = None
@@ -204,13 +238,9 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     centred = (d0 - np.float32(shift)) * weight  # small numbers: the float32 variance stays exact enough
     mean = cv2.boxFilter(centred, -1, box, normalize=False) / np.maximum(count, 1)
     square = cv2.boxFilter(centred * centred, -1, box, normalize=False) / np.maximum(count, 1)
-    smooth = np.sqrt(np.maximum(square - mean * mean, 0.0)) <= max_spread_px
+    smooth = np.sqrt(np.maximum(square - mean * mean, 0.0)) <= MAX_SPREAD_PX
     keep = valid & smooth & (count >= 0.5 * window * window) & (np.abs(refined - d0) < 1.0)
-    sigma = disagreement = None
-    if with_sigma:
-        sigma = np.where(keep, sigma_refined, sigma_sgbm)
-        disagreement = _disagreement(d0, refined, keep, sigma_sgbm, window, sigma_window)
-    return Subpixel(_masked(np.where(keep, refined, d0), valid), _masked(sigma, valid), _masked(disagreement, valid))
+    return refined, sigma_refined, keep
 
 
 class Subpixel(NamedTuple):
@@ -239,6 +269,7 @@ def _disagreement(sgbm, refined, keep, sigma_sgbm, window: int, block: int):
 # nadir board (predicted against measured disparity RMS, see `experiments/uncertainty.py`).
 MATCH_NOISE_SCALE = 4.0
 SGBM_NOISE_SCALE = 1.4
+MAX_SPREAD_PX = 0.5  # a patch whose SGBM disparities spread more (std) straddles an edge: SGBM's value stays
 
 
 def _fit_products(g, r, k, weight, residuals: bool):

@@ -53,9 +53,10 @@ class ReconstructOptions:
     above the water, or above z = 0 when dry); `match` SGBM options; `colour` match on the three colour
     channels (grey images work either way); `max_ray_gap_px` drop matches whose two rays pass further
     apart than this many pixels at the point's distance; `subpixel` refine SGBM's disparities by
-    Lucas-Kanade over `subpixel_window` px patches from whole-pixel bases, where the surface is smooth
-    (see `refine_disparity`; on the POV-Ray flume's boards the RMSE falls from 2.9 to 2.0 mm (nadir) and
-    from 1.8 to 1.1 mm (oblique); on its rubble the MAE changes by +0.1 mm); without it, SGBM's own
+    Lucas-Kanade over `subpixel_window` px patches from whole-pixel bases, where the surface is smooth, and
+    over `subpixel_small_window` px patches (None: never) where it is curved within the large one (see
+    `refine_disparity`; on the POV-Ray flume's boards the RMSE falls from 2.9 to 2.1 mm (nadir) and from 1.8
+    to 1.1 mm (oblique), on its rubble the submerged MAE from 2.3 to 2.0 mm); without it, SGBM's own
     sub-pixel values; `max_sigma_disparity_px` drop matches whose disparity's standard deviation (from the
     matching itself, see `refine_disparity`) exceeds this: the images do not place them; `uncertainty`
     propagate each point's covariance (`Survey.cov`, see `jaxstereo._stereo.uncertainty`);
@@ -76,6 +77,7 @@ class ReconstructOptions:
     uncertainty: bool = True
     subpixel: bool = True
     subpixel_window: int = 31
+    subpixel_small_window: int | None = 15
     water_level_std_m: float | None = None
     max_photometric_ratio: float | None = MAX_RESIDUAL_RATIO
 
@@ -84,6 +86,10 @@ class ReconstructOptions:
             raise JaxStereoError(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
         if not self.max_ray_gap_px > 0:
             raise JaxStereoError(f"max_ray_gap_px must be positive, got {self.max_ray_gap_px}")
+        for name in ("subpixel_window", "subpixel_small_window"):
+            value = getattr(self, name)
+            if value is not None and (value < 3 or value % 2 == 0):
+                raise JaxStereoError(f"{name} must be an odd number of pixels, at least 3, got {value}")
         if not self.max_sigma_disparity_px > 0:
             raise JaxStereoError(f"max_sigma_disparity_px must be positive, got {self.max_sigma_disparity_px}")
         if self.max_photometric_ratio is not None and not self.max_photometric_ratio > 0:
@@ -289,7 +295,7 @@ def reconstruct(
     t1 = time.perf_counter()
     offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None
     subpixel = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
-                                sigma_window=options.match.block_size, subpixel=options.subpixel,
+                                options.subpixel_small_window, sigma_window=options.match.block_size, subpixel=options.subpixel,
                                 with_sigma=options.uncertainty)
     disparity, undetermined = _drop_undetermined(subpixel, options.max_sigma_disparity_px)
     timings["sub-pixel (s)"] = time.perf_counter() - t1

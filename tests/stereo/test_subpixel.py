@@ -1,0 +1,46 @@
+"""Sub-pixel refinement over two patch sizes, on a pair rendered from an analytic disparity field."""
+
+import cv2
+import numpy as np
+
+from jaxstereo._stereo.matching import refine_disparity
+
+H, W = 200, 320
+CENTRE, WIDTH, HEIGHT = (100, 160), 9.0, 1.2  # a bump of the disparity (a rock): pixels
+BASE = 20.0
+
+
+def _bumped_pair(seed=0):
+    """A textured pair whose true disparity (h, w) is a flat BASE plus a Gaussian bump, the right image
+    rendered exactly from the left one's texture (x_right = x_left - d), and SGBM-like starting values
+    (the truth plus 0.1 px of noise, quantised to 1/16 px)."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    def disparity(u):
+        return BASE + HEIGHT * np.exp(-((u - CENTRE[1]) ** 2 + (v - CENTRE[0]) ** 2) / (2 * WIDTH**2))
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (H, W + 64)).astype(np.float32), (0, 0), 1.2)
+    left = texture[:, :W]
+    source = u + BASE  # the left column each right pixel sees: u_left - d(u_left) = u_right
+    for _ in range(30):
+        source = u + disparity(source)
+    right = cv2.remap(texture, source.astype(np.float32), v.astype(np.float32), cv2.INTER_CUBIC)
+    truth = disparity(u)
+    start = np.round((truth + rng.normal(0.0, 0.1, truth.shape)) * 16) / 16
+    as_image = [np.clip(im, 0, 255).astype(np.uint8) for im in (left, right)]
+    return *as_image, start.astype(np.float32), truth
+
+
+def test_the_small_patch_follows_a_curved_surface_the_large_one_smooths():
+    """Over a bump 9 px wide the 31 px patch averages the relief (0.38 px RMS on it, measured); where the 15 px
+    patch disagrees it is taken (0.30 px: it smooths too, less), and the flat part keeps the large patch."""
+    left, right, start, truth = _bumped_pair()
+    v, u = np.mgrid[0:H, 0:W]
+    r = np.hypot(v - CENTRE[0], u - CENTRE[1])
+    bump, flat = r < 1.5 * WIDTH, (r > 5 * WIDTH) & (u > 40) & (u < W - 40) & (v > 20) & (v < H - 20)
+    rms = {}
+    for small in (None, 15):
+        d = refine_disparity(left, right, start, window=31, small_window=small, with_sigma=True).disparity
+        rms[small] = [float(np.sqrt(np.mean((d[m] - truth[m]) ** 2))) for m in (bump, flat)]
+    (bump_large, flat_large), (bump_both, flat_both) = rms[None], rms[15]
+    assert bump_both < 0.85 * bump_large
+    assert flat_both <= 1.02 * flat_large
