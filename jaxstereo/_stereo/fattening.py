@@ -35,7 +35,8 @@ def drop_fattened(image: np.ndarray, disparity: np.ndarray, reach_px: int = 12, 
     pixels = image.reshape(image.shape[0], image.shape[1], -1).astype(np.float32)
     rows = _along_rows(pixels, disparity, reach_px, step_px, gap_px, edge_ratio)
     remaining = np.where(rows, np.nan, disparity)
-    columns = _along_rows(np.swapaxes(pixels, 0, 1), remaining.T, reach_px, step_px, gap_px, edge_ratio).T
+    columns = _along_rows(np.ascontiguousarray(np.swapaxes(pixels, 0, 1)), np.ascontiguousarray(remaining.T),
+                          reach_px, step_px, gap_px, edge_ratio).T
     return rows | columns
 
 
