@@ -10,9 +10,10 @@ import numpy as np
 from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike
 from .._stereo.survey import Survey
+from .coverage import filled_sigma, partial_coverage_sigma
 
 SIGMA_LAYERS = ("sigma_match", "sigma_calibration", "sigma_level")
-ERROR_LAYERS = SIGMA_LAYERS + ("dz_subpixel",)
+ERROR_LAYERS = SIGMA_LAYERS + ("dz_subpixel", "sigma_coverage")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -24,8 +25,9 @@ class DEM:
     vertical standard deviation (ny, nx) metres in three parts: `sigma_match` (matching; its errors are
     correlated over `correlation_m` metres, independent beyond), `sigma_calibration` and `sigma_level`
     (shared by every cell of the survey); `dz_subpixel` the signed offset (metres) between the two sub-pixel
-    estimators, a systematic error of unknown sign (see `Survey.dz_subpixel`); None when unknown. `calibration_id` names the cameras the survey
-    was made with (a digest; surveys with the same one share the calibration's errors) and `water_level` its
+    estimators, a systematic error of unknown sign (see `Survey.dz_subpixel`); `sigma_coverage` the std of a
+    cell seen only in part or filled from its neighbours (see `coverage.py`); None when unknown.
+    `calibration_id` names the cameras the survey was made with (a digest; surveys with the same one share the calibration's errors) and `water_level` its
     level (metres, NaN when dry or unknown): empty / NaN when unknown.
     """
 
@@ -37,6 +39,7 @@ class DEM:
     sigma_calibration: np.ndarray | None = None
     sigma_level: np.ndarray | None = None
     dz_subpixel: np.ndarray | None = None
+    sigma_coverage: np.ndarray | None = None
     correlation_m: float = float("nan")
     calibration_id: str = ""
     water_level: float = float("nan")
@@ -51,7 +54,8 @@ class DEM:
         if not self.has_sigma:
             return None
         method = 0.0 if self.dz_subpixel is None else self.dz_subpixel**2
-        return np.sqrt(self.sigma_match**2 + self.sigma_calibration**2 + self.sigma_level**2 + method)
+        coverage = 0.0 if self.sigma_coverage is None else self.sigma_coverage**2
+        return np.sqrt(self.sigma_match**2 + self.sigma_calibration**2 + self.sigma_level**2 + method + coverage)
 
     def with_layers(self, fn: Callable[[np.ndarray], np.ndarray]) -> "DEM":
         """This DEM with `fn` applied to its height and to each of its error layers (ny, nx) -> (ny', nx')."""
@@ -100,7 +104,7 @@ def grid_median(points: np.ndarray, spacing: float, x: np.ndarray | None = None,
 
 def fill_holes(dem: DEM, max_gap_m: float) -> DEM:
     """Fill empty cells whose nearest data lies within `max_gap_m` (nearest value, and the nearest cell's
-    sigma layers); larger holes stay NaN."""
+    sigma layers, with `sigma_coverage` from the range of the seen heights within reach); larger holes stay NaN."""
     from scipy import ndimage
 
     empty = np.isnan(dem.z)
@@ -114,7 +118,12 @@ def fill_holes(dem: DEM, max_gap_m: float) -> DEM:
         out[fill] = layer[ii[fill], jj[fill]]
         return out
 
-    return dem.with_layers(filled)
+    out = dem.with_layers(filled)
+    if dem.has_sigma:  # a filled height was not seen: as uncertain as the seen heights within reach
+        reach = int(np.ceil(max_gap_m / dem.spacing))
+        own = np.where(np.isfinite(dem.z), 0.0, np.nan) if dem.sigma_coverage is None else out.sigma_coverage
+        out = dataclasses.replace(out, sigma_coverage=np.where(fill, filled_sigma(dem.z, reach), own))
+    return out
 
 
 def grid_survey(survey: Survey, spacing: float, x: np.ndarray | None = None, y: np.ndarray | None = None,
@@ -124,8 +133,9 @@ def grid_survey(survey: Survey, spacing: float, x: np.ndarray | None = None, y: 
     A cell's matching std is the RMS of its points' `sigma_z_match` divided by the square root of the number of
     independent matches in it (one per `MATCH_CORRELATION_PX`-wide square of pixels: neighbouring matches share
     most of their fitting window, so their errors are nearly the same); its calibration and level stds are
-    the means of its points' (shared errors do not average out). `correlation_m` is the matching window's
-    footprint at the survey's median distance from the left camera.
+    the means of its points' (shared errors do not average out); a cell seen in part gets `sigma_coverage`
+    (`partial_coverage_sigma`). `correlation_m` is the matching window's footprint at the survey's median
+    distance from the left camera.
     """
     from .._stereo.uncertainty import MATCH_CORRELATION_PX
 
@@ -142,12 +152,14 @@ def grid_survey(survey: Survey, spacing: float, x: np.ndarray | None = None, y: 
         return np.where(has, total / np.maximum(count, 1), np.nan).reshape(dem.z.shape)
 
     independent = np.maximum(1.0, count.reshape(dem.z.shape) / MATCH_CORRELATION_PX**2)
+    coverage = partial_coverage_sigma(dem.z, count.reshape(dem.z.shape))
     match = np.sqrt(cell_mean(survey.sigma_z_match.astype(np.float64) ** 2) / independent)
     return dataclasses.replace(dem, sigma_match=match, sigma_calibration=cell_mean(survey.sigma_z_calibration),
                                sigma_level=cell_mean(survey.sigma_z_level.astype(np.float64)),
                                dz_subpixel=None if survey.dz_subpixel is None else
                                cell_mean(survey.dz_subpixel.astype(np.float64)),
-                               correlation_m=_match_footprint(survey), calibration_id=_calibration_id(survey),
+                               sigma_coverage=coverage, correlation_m=_match_footprint(survey),
+                               calibration_id=_calibration_id(survey),
                                water_level=float(survey.water_level))
 
 

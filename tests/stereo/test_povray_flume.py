@@ -174,3 +174,33 @@ def test_board_error_bars_are_honest_in_every_layer(flume, oblique_rig, scene):
         # Gaussian: 99.1 % within 2 sigma at a ratio of 1.10; the ratio bounds the over-statement)
         assert 0.85 <= layer["within_2_sigma"] <= 0.995, layer
         assert 0.7 <= layer["ratio"] <= 1.3, layer
+
+
+def test_undamaged_model_dry_against_wet_reports_S_within_its_error_bars(flume):
+    """`jaxstereo damage` between the dry and the wet survey of the undamaged model, one profile per 5 mm row:
+    every true S is 0, so the reported S must lie within its sigma. Rows along a rock's edge show the rock's
+    top dry and the crevice beside it wet (cells seen in part or filled); their sigma must say so."""
+    work, truth, rig = flume
+    for scene in ("bw_I_dry", "bw_I_wet"):
+        _survey(flume, scene)
+    bw = truth["breakwater"]
+    to_truth = _to_truth(rig, truth)
+    R, t = np.asarray(rig["left"]["R"], float), np.asarray(rig["left"]["t"], float)
+    true = truth["rigs"]["main"]["L"]
+    R_t, t_t = np.asarray(true["R"], float), np.asarray(true["t"], float)
+
+    def to_ours(P):
+        return (R.T @ (R_t @ P.T + t_t[:, None] - t[:, None])).T
+
+    level = truth["scenes"]["bw_I_wet"]["water_level"]
+    toe, water = to_ours(np.array([[bw["toe"], 0.3, 0.0], [bw["toe"], 0.3, level]]))
+    assert np.allclose(to_truth(toe[None])[0], [bw["toe"], 0.3, 0.0])
+    out = work / "damage_undamaged"
+    assert main(["damage", str(work / "bw_I_dry.npz"), str(work / "bw_I_wet.npz"), "--dn50", str(bw["dn50"]),
+                 "--slope", str(bw["slope"]), "--swl", "%.5f" % water[2], "--slope-origin", "%.5f" % toe[0],
+                 "%.5f" % toe[2], "--profile-spacing", "0.005", "-o", str(out)]) == 0
+    profiles = [p for p in json.loads((out / "damage.json").read_text())["profiles"] if p["S_sigma"] is not None]
+    z = np.array([p["S"] / p["S_sigma"] for p in profiles])
+    assert len(profiles) >= 60
+    assert np.mean(z <= 2) >= 0.95  # 69 of 71 measured (without the coverage term: 35 of 70, the largest 9 sigma)
+    assert z.max() <= 4  # 3.5 measured: S 0.44 +- 0.12 at y = 0.02 m; the largest S, 1.37, has sigma 0.74
