@@ -248,8 +248,9 @@ def _cmd_grid(args) -> int:
               f"errors correlated over {1e3 * dem.correlation_m:.0f} mm)")
         if dem.sigma_coverage is not None:
             part = ok & (dem.sigma_coverage > 0)
-            print(f"  {100 * part.sum() / max(ok.sum(), 1):.1f}% of the cells seen in part or filled"
-                  + (f": their coverage std median {1e3 * np.median(dem.sigma_coverage[part]):.1f} mm" if part.any() else ""))
+            median = (f": their coverage std median {1e3 * np.median(dem.sigma_coverage[part]):.1f} mm"
+                      if part.any() else "")
+            print(f"  {100 * part.sum() / max(ok.sum(), 1):.1f}% of the cells seen in part or filled{median}")
     else:
         print("  no sigma layer: " + ("Delaunay gridding interpolates, it does not average" if args.method == "delaunay"
                                       else "the survey has no error bars (made before they existed?)"))

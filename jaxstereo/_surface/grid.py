@@ -27,8 +27,9 @@ class DEM:
     (shared by every cell of the survey); `dz_subpixel` the signed offset (metres) between the two sub-pixel
     estimators, a systematic error of unknown sign (see `Survey.dz_subpixel`); `sigma_coverage` the std of a
     cell seen only in part or filled from its neighbours (see `coverage.py`); None when unknown.
-    `calibration_id` names the cameras the survey was made with (a digest; surveys with the same one share the calibration's errors) and `water_level` its
-    level (metres, NaN when dry or unknown): empty / NaN when unknown.
+    `calibration_id` names the cameras the survey was made with (a digest; surveys with the same one share the
+    calibration's errors) and `water_level` its level (metres, NaN when dry or unknown): empty / NaN when
+    unknown.
     """
 
     x: np.ndarray
