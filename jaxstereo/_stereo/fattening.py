@@ -25,7 +25,8 @@ def drop_fattened(image: np.ndarray, disparity: np.ndarray, reach_px: int = 12, 
     neighbouring pixels (averaged over three lines). Where the strongest edge within `reach_px` pixels
     on the step's higher-disparity side is more than `edge_ratio` times the strongest edge at the step,
     and as many times the median edge over `reach_px` pixels on the other side (the background's texture
-    and noise: a weak texture's own ripples are not an outline), the pixels from the step to that edge are flagged.
+    and noise: a weak texture's own ripples are not an outline), the pixels from the step to that edge are
+    flagged.
 
     **Arguments:** the rectified reference `image` (h, w) or (h, w, c) of `disparity` (h, w) pixels, NaN
     for no match.

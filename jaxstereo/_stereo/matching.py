@@ -41,7 +41,8 @@ class MatchOptions:
         if self.mode not in ("3way", "sgbm", "hh"):
             raise JaxStereoError(f"SGBM mode must be 3way, sgbm or hh, got {self.mode!r}")
         if self.fattening_reach_px < 0:
-            raise JaxStereoError(f"fattening_reach_px must be 0 (off) or a number of pixels, got {self.fattening_reach_px}")
+            raise JaxStereoError("fattening_reach_px must be 0 (off) or a number of pixels, "
+                                 f"got {self.fattening_reach_px}")
 
 
 _MODES = {"3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY, "sgbm": cv2.STEREO_SGBM_MODE_SGBM, "hh": cv2.STEREO_SGBM_MODE_HH}
@@ -226,7 +227,7 @@ WINDOW_AGREEMENT = 3.0  # the large window's value stands where the small one's 
 def _refine_in_windows(products, d0, shift, fraction, weight, valid, window: int, channels: int, with_sigma: bool):
     """Lucas-Kanade over `window` x `window` patches (see `refine_disparity`): the refined disparities (h, w),
     their standard deviations (h, w, or None without `with_sigma`), and where they are kept (h, w) bool: the
-    patch's SGBM disparities agree within `max_spread_px`, it is at least half matched, and the refined
+    patch's SGBM disparities agree within `MAX_SPREAD_PX`, it is at least half matched, and the refined
     value stays within 1 px of SGBM's."""
     fits = [_window_fit(p, (window, window), channels) for p in products]
     refined = (1 - fraction) * (fits[0][2] + shift) + fraction * (fits[1][2] + shift)

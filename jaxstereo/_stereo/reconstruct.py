@@ -295,8 +295,8 @@ def reconstruct(
     t1 = time.perf_counter()
     offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None
     subpixel = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
-                                options.subpixel_small_window, sigma_window=options.match.block_size, subpixel=options.subpixel,
-                                with_sigma=options.uncertainty)
+                                options.subpixel_small_window, sigma_window=options.match.block_size,
+                                subpixel=options.subpixel, with_sigma=options.uncertainty)
     disparity, undetermined = _drop_undetermined(subpixel, options.max_sigma_disparity_px)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
     photometric = 0

@@ -71,6 +71,11 @@ def correlated_noise(shape: tuple[int, int], width_cells: float, rng: np.random.
     return ndimage.uniform_filter(white, size=w, mode="wrap") * w
 
 
+def _footprint_cells(dem: DEM) -> float:
+    """The matching window's footprint (`correlation_m`) in cells; 1 when unknown."""
+    return dem.correlation_m / dem.spacing if np.isfinite(dem.correlation_m) else 1.0
+
+
 def hollow_depth(dem: DEM) -> np.ndarray:
     """How high a survey may read each cell of a hollow (m, the DEM's shape, >= 0): the DEM's mean over a box as
     wide as the matching window's footprint (`correlation_m`) less the DEM, where positive; zero elsewhere and
@@ -78,8 +83,7 @@ def hollow_depth(dem: DEM) -> np.ndarray:
     the hollow's floor beside a wall is hidden from one camera, so hollows narrower than the footprint read too
     shallow; crests are seen by both cameras and are not raised. The DEM is itself smoothed, so this is a lower
     estimate of the hollow. Cells whose box is not wholly known (edges, holes) get zero."""
-    width = dem.correlation_m / dem.spacing if np.isfinite(dem.correlation_m) else 1.0
-    w = 2 * round(width / 2) + 1  # odd: a plane's box mean is its centre's height
+    w = 2 * round(_footprint_cells(dem) / 2) + 1  # odd: a plane's box mean is its centre's height
     known = np.isfinite(dem.z)
     if w == 1 or not known.any():
         return np.zeros(dem.z.shape)
@@ -113,21 +117,21 @@ def damage_sigma(before: DEM, after: DEM, compute: Callable[[DEM, DEM], StretchD
             raise JaxStereoError(f"the {name} surface has no sigma layers: grid a survey made with error bars "
                                  "(jaxstereo reconstruct writes them) to get the damage's")
     rng = np.random.default_rng(seed)
-    hollows = {id(dem): hollow_depth(dem) for dem in (before, after)}
+    hollows = [hollow_depth(dem) for dem in (before, after)]
     samples, profiles, failed = [], [], 0
     for _ in range(draws):
         common = rng.standard_normal(4)
         perturbed = []
-        for dem in (before, after):
+        for dem, hollow in zip((before, after), hollows):
             own = rng.standard_normal(2)
             e_cal = common[0] if shared_calibration else own[0]
             e_level = common[1] if shared_level else own[1]
-            width = dem.correlation_m / dem.spacing if np.isfinite(dem.correlation_m) else 1.0
+            width = _footprint_cells(dem)
             noise = (dem.sigma_match * correlated_noise(dem.z.shape, width, rng)
                      + e_cal * dem.sigma_calibration + e_level * dem.sigma_level)
             if dem.dz_subpixel is not None:
                 noise = noise + common[2] * dem.dz_subpixel
-            noise = noise + common[3] * hollows[id(dem)]
+            noise = noise + common[3] * hollow
             if dem.sigma_coverage is not None:
                 noise = noise + dem.sigma_coverage * correlated_noise(dem.z.shape, width, rng)
             perturbed.append(dataclasses.replace(dem, z=dem.z + np.nan_to_num(noise)))
