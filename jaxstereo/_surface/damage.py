@@ -2,7 +2,10 @@
 
 Profile method: both profiles are rotated into the frame of the design slope (X' along the slope,
 Z' normal to it, outwards), their abscissae merged, and the difference `final - initial` swept for
-sign changes. Each negative stretch is an erosion zone with its area `A_e`, length `L_e` (along the
+sign changes. Where a profile drops more steeply than the design slope rises (the landward face of a
+rock), its rotated polyline folds back along X'; each profile is then taken as its outer envelope (the
+largest Z' over every part of the polyline above an abscissa), the surface a probe coming along the
+slope's normal touches. Each negative stretch is an erosion zone with its area `A_e`, length `L_e` (along the
 slope) and maximum depth `d_e` (normal to the slope); the largest is reported.
 `S = A_e / Dn50^2`, `E2D = d_e / Dn50`. Over a stretch, 3-D volumes and `E3D` come from DEM differences.
 """
@@ -108,6 +111,27 @@ def _zones(X, D, sign):
     return zones
 
 
+def outer_envelope(X: np.ndarray, Z: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """The outer envelope of a polyline in the slope frame: the largest Z' (m) over every part of the
+    polyline (vertices `X`, `Z` (n,) metres, in order along the profile) above each abscissa `at` (m,);
+    NaN outside the polyline's range. Exact at the vertices; linear in between, as the polyline.
+
+    The polyline is cut where it turns back along X' into monotonic runs, each interpolated on its own.
+    """
+    step = np.sign(np.diff(X))
+    for k in range(1, step.size):  # a segment normal to the slope continues the run before it
+        if step[k] == 0:
+            step[k] = step[k - 1]
+    cuts = np.nonzero(step[1:] != step[:-1])[0] + 1
+    out = np.full(np.shape(at), np.nan)
+    for start, end in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [step.size]])):
+        xs, zs = X[start:end + 1], Z[start:end + 1]
+        if xs[-1] < xs[0]:
+            xs, zs = xs[::-1], zs[::-1]
+        out = np.fmax(out, np.interp(at, xs, zs, left=np.nan, right=np.nan))
+    return out
+
+
 def slope_abscissa(z: float, cot: float, origin=(0.0, 0.0)) -> float:
     """Abscissa along the design slope (m, the frame of `to_slope_frame`) of the slope line's point at height z."""
     return (z - origin[1]) * float(np.hypot(cot, 1.0))
@@ -120,7 +144,8 @@ def profile_damage(initial: tuple[ArrayLike, ArrayLike], final: tuple[ArrayLike,
 
     **Arguments:**
 
-    - `initial`, `final`: `(x, z)` pairs of arrays (metres) along the profile (NaNs are dropped).
+    - `initial`, `final`: `(x, z)` pairs of arrays (metres) along the profile, taken in order of x (NaNs are
+      dropped).
     - `dn50`: nominal diameter of the armour units, metres.
     - `cot`: the design slope's cotangent (2 for 1:2).
     - `origin`: a point `(x, z)` on the design slope line.
@@ -136,11 +161,10 @@ def profile_damage(initial: tuple[ArrayLike, ArrayLike], final: tuple[ArrayLike,
         ok = np.isfinite(x) & np.isfinite(z)
         if ok.sum() < 2:
             raise JaxStereoError(f"the {name} profile has fewer than 2 valid points")
-        X, Z = to_slope_frame(x[ok], z[ok], cot, origin)
-        order = np.argsort(X, kind="stable")
-        frames.append((X[order], Z[order]))
+        order = np.argsort(x[ok], kind="stable")
+        frames.append(to_slope_frame(x[ok][order], z[ok][order], cot, origin))
     (Xi, Zi), (Xf, Zf) = frames
-    lo, hi = max(Xi[0], Xf[0]), min(Xi[-1], Xf[-1])
+    lo, hi = max(Xi.min(), Xf.min()), min(Xi.max(), Xf.max())
     if hi <= lo:
         raise JaxStereoError("the initial and final profiles do not overlap along the slope")
     if active_zone is not None:
@@ -150,7 +174,7 @@ def profile_damage(initial: tuple[ArrayLike, ArrayLike], final: tuple[ArrayLike,
                                  f"{active_zone[1]:.3f} m along the slope)")
     X = np.unique(np.concatenate([Xi, Xf, [lo, hi]]))
     X = X[(X >= lo) & (X <= hi)]
-    D = np.interp(X, Xf, Zf) - np.interp(X, Xi, Zi)
+    D = outer_envelope(Xf, Zf, X) - outer_envelope(Xi, Zi, X)
     erosion = _zones(X, D, -1.0)
     accretion = _zones(X, D, +1.0)
     biggest = max(erosion, key=lambda zn: zn.area) if erosion else Zone(0.0, 0.0, 0.0, 0.0, 0.0)

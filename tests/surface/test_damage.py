@@ -73,6 +73,49 @@ def test_pure_accretion_gives_zero_damage():
     assert len(dmg.accretion) == 1 and abs(dmg.accretion[0].area - 0.125 * 0.03) < 1e-9
 
 
+def _dense_envelope_damage(initial, final, cot, origin, step=2e-5):
+    """Reference for a folded profile: both polylines cut into pieces shorter than a bin, their outer envelope
+    taken as the highest piece in each 20-micrometre bin along the slope, the difference summed."""
+    envelopes = []
+    for x, z in (initial, final):
+        t = np.linspace(0.0, 1.0, 4000)[:, None]  # a 1 mm step rising 3 cm spans 15 mm of slope
+        xs = (x[:-1] + t * np.diff(x)).ravel()
+        zs = (z[:-1] + t * np.diff(z)).ravel()
+        X, Z = to_slope_frame(xs, zs, cot, origin)
+        envelopes.append((X, Z))
+    lo = max(X.min() for X, _ in envelopes)
+    hi = min(X.max() for X, _ in envelopes)
+    edges = np.arange(lo, hi, step)
+    tops = []
+    for X, Z in envelopes:
+        top = np.full(edges.size, -np.inf)
+        k = np.clip(((X - lo) / step).astype(int), 0, edges.size - 1)
+        np.maximum.at(top, k, Z)
+        tops.append(top)
+    D = tops[1] - tops[0]
+    return step * np.sum(np.clip(-D, 0.0, None)), float(np.max(-D))
+
+
+def test_a_face_steeper_than_the_slope_folds_the_profile_and_its_outer_envelope_is_swept():
+    # A 1:2 slope with a block on it: its landward face drops vertically, so the profile turns back along
+    # the slope there. The final profile has lost the block and 1 cm more over a stretch around it.
+    origin = (0.1, 0.05)
+    x = np.round(np.arange(0.0, 0.6, 0.001), 6)
+    slope = origin[1] + (x - origin[0]) / COT
+    block = (x >= 0.25) & (x < 0.30)
+    z_initial = slope + 0.03 * block
+    lowered = (x >= 0.20) & (x <= 0.36)
+    z_final = slope - 0.01 * lowered
+    dmg = profile_damage((x, z_initial), (x, z_final), DN50, COT, origin=origin)
+    area, depth = _dense_envelope_damage((x, z_initial), (x, z_final), COT, origin)
+    big = [zone for zone in dmg.erosion if zone.area > 1e-7]
+    assert len(big) == 1  # one hole, not split where the block's face folds the profile
+    assert abs(dmg.A_e - area) < 0.002 * area
+    assert abs(dmg.d_e - depth) < 1e-5
+    # The zone runs along the slope over the whole lowered stretch (x 0.20 to 0.36), the block inside it.
+    assert abs(dmg.L_e - (0.36 - 0.20) * np.hypot(COT, 1.0) / COT) < 0.003
+
+
 def test_slope_frame_rotation_keeps_lengths():
     x = np.array([0.0, 2.0, 3.0])
     z = np.array([0.0, 1.0, 0.5])

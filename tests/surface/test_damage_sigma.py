@@ -63,15 +63,25 @@ def test_a_hollow_narrower_than_the_window_footprint_counts_as_possibly_read_hig
     assert damage_sigma(_slope(**zero), _slope(**zero), _compute, True, True, draws=16).sigma["S"] < 1e-9
 
 
+def _basin(depth_m=0.0, **layers):
+    """The slope of `_slope` with a smooth basin (a cosine arch, 0.16 m long) in place of the sharp hole, and no
+    matching footprint: every cell's matching error independent, no hollow term."""
+    x = np.arange(0.0, 0.8, 0.005)
+    y = np.arange(-0.1, 0.1, 0.005)
+    arch = np.clip(np.cos(np.pi * (x - 0.32) / 0.16), 0.0, None) * (np.abs(x - 0.32) < 0.08)
+    z = x / COT - depth_m * arch[None, :] * (np.abs(y) < 0.06)[:, None]
+    return DEM(x, y, z, 0.005, **{key: np.full(z.shape, value) for key, value in layers.items()})
+
+
 def test_matching_noise_gives_a_sigma_that_grows_with_it():
-    small = damage_sigma(_slope(sigma_match=0.0005, sigma_calibration=0.0, sigma_level=0.0),
-                         _slope(0.03, sigma_match=0.0005, sigma_calibration=0.0, sigma_level=0.0),
-                         _compute, False, False, draws=24)
-    large = damage_sigma(_slope(sigma_match=0.002, sigma_calibration=0.0, sigma_level=0.0),
-                         _slope(0.03, sigma_match=0.002, sigma_calibration=0.0, sigma_level=0.0),
-                         _compute, False, False, draws=24)
-    assert 0 < small.sigma["S"] < large.sigma["S"]
-    assert set(small.profile_S) and all(v >= 0 for v in small.profile_S.values())
+    """On a smooth basin, where no zone's end jumps, S's error bar is proportional to the matching noise."""
+    sigmas = []
+    for noise in (0.0005, 0.002):
+        layers = {"sigma_match": noise, "sigma_calibration": 0.0, "sigma_level": 0.0}
+        result = damage_sigma(_basin(**layers), _basin(0.03, **layers), _compute, False, False, draws=24)
+        sigmas.append(result.sigma["S"])
+        assert set(result.profile_S) and all(v >= 0 for v in result.profile_S.values())
+    assert 0 < sigmas[0] and 3.0 < sigmas[1] / sigmas[0] < 5.0  # four times the noise
 
 
 def test_surfaces_without_sigma_layers_are_refused_with_a_clear_error():
