@@ -119,9 +119,8 @@ def outer_envelope(X: np.ndarray, Z: np.ndarray, at: np.ndarray) -> np.ndarray:
     The polyline is cut where it turns back along X' into monotonic runs, each interpolated on its own.
     """
     step = np.sign(np.diff(X))
-    for k in range(1, step.size):  # a segment normal to the slope continues the run before it
-        if step[k] == 0:
-            step[k] = step[k - 1]
+    # A segment normal to the slope (no step along it) continues the run before it.
+    step = step[np.maximum.accumulate(np.where(step != 0, np.arange(step.size), 0))]
     cuts = np.nonzero(step[1:] != step[:-1])[0] + 1
     out = np.full(np.shape(at), np.nan)
     for start, end in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [step.size]])):
