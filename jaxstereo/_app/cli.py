@@ -438,11 +438,16 @@ def _print_refinement(result, refine, control, points) -> None:
 def _keep_guess_or_refuse(args, result):
     """An undetermined level: refuse (no rig), or with --keep-guess the rig at the guess, said so in its provenance."""
     from .._calibration.rig import Rig
+    from .._stereo.refine import MIN_CORRESPONDENCES
 
     level, std = result.parameters["water level (m)"]
     message = (f"water level not determined: {level:.4f} m +/- {1e3 * std:.1f} mm from {result.n_correspondences} "
                f"correspondences and {result.n_control} control terms; add control (--control floor with "
                "--floor-x, a dry DEM, control points)")
+    if 0 <= result.n_submerged < MIN_CORRESPONDENCES:
+        message = (f"water level not determined: the solver ended at {level:.4f} m, where only {result.n_submerged} "
+                   f"of {result.n_correspondences} correspondences lie under the water (check the level guess, "
+                   "the rig and the control)")
     if not args.keep_guess:
         raise JaxStereoError(message + ", or pass --keep-guess to write the rig at the guessed level")
     print(f"  WATER LEVEL NOT DETERMINED ({message}); keeping the guess {args.water_level_guess:.4f} m (--keep-guess)")

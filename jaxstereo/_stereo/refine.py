@@ -160,14 +160,15 @@ def _triangulate_any(left: Camera, right: Camera, interface: Interface, pl, pr):
 
 
 def _residuals(theta, args):
-    """Reprojection residuals (pixels, both images), floor residuals (metres, 0 off the floor), then
-    control-point residuals (metres, 3 per point)."""
+    """Reprojection residuals (pixels) in four blocks of one row per correspondence (left u, left v, right u,
+    right v: the layout the weights, residual groups and jackknife blocks index), floor residuals (metres, 0 off
+    the floor), control-point residuals (metres, 3 per point), then the pose prior's."""
     model, pl, pr, control_mask, control_z, gcp_l, gcp_r, gcp_xyz = args
     right, interface = model.unpack(theta)
     points = _triangulate_any(model.left, right, interface, pl, pr)
     ql, _ = project_refracted(model.left, interface, points)
     qr, _ = project_refracted(right, interface, points)
-    reproj = jnp.concatenate([(ql - pl).ravel(), (qr - pr).ravel()])
+    reproj = jnp.concatenate([(ql - pl).T.ravel(), (qr - pr).T.ravel()])
     control = jnp.where(control_mask, points[:, 2] - control_z, 0.0)
     gcp = _triangulate_any(model.left, right, interface, gcp_l, gcp_r) - gcp_xyz
     return jnp.concatenate([reproj, control, gcp.ravel(), model.prior_residuals(theta)])
@@ -203,7 +204,8 @@ class RefineResult:
     combines the fit's (`level_std_fit_m`: the larger of the Gauss-Newton one, scaled by the residuals' own
     noise, and a jackknife over 16 blocks of the image, which sees errors correlated in space) and the world
     frame's (`level_std_frame_m`: the calibration's scale, see `scale_level_std`); `level_determined` whether that
-    standard deviation is below 1 mm (`LEVEL_STD_LIMIT_M`) and every solve converged; `rms_before_px`, `rms_after_px`
+    standard deviation is below 1 mm (`LEVEL_STD_LIMIT_M`), every solve converged and at least
+    `MIN_CORRESPONDENCES` correspondences lie under the refined level (`n_submerged`); `rms_before_px`, `rms_after_px`
     reprojection RMS of the inliers; `n_correspondences`, `n_control`; `steps` solver steps; `result` the
     last solve's outcome in words ("converged", "stopped at its step limit", "diverged", ...), `converged`
     whether every solve converged; `seconds`; `surface_sigma_m` the standard deviation given to the floor
@@ -224,6 +226,7 @@ class RefineResult:
     converged: bool = True
     level_std_fit_m: float = float("nan")
     level_std_frame_m: float = 0.0
+    n_submerged: int = -1
 
 
 def _check_which(refine) -> tuple[str, ...]:
@@ -275,7 +278,7 @@ def _gate(model, guess, pl, pr):
     points = np.asarray(_triangulate_jit(model.left, model.right, guess, a, b))[: len(pl)]
     args = (model, a, b, jnp.zeros(size, bool), jnp.zeros(size), *(jnp.asarray(g) for g in _NO_GCP))
     err = np.asarray(_residuals_jit(jnp.zeros(model.size), args))[: 4 * size]
-    err = np.linalg.norm(err.reshape(2, -1, 2), axis=-1).max(axis=0)[: len(pl)]
+    err = np.linalg.norm(err.reshape(2, 2, -1), axis=1).max(axis=0)[: len(pl)]  # (image, coordinate, point)
     inlier = np.isfinite(err) & (err < 5.0) & np.all(np.isfinite(points), axis=1)
     if inlier.sum() < MIN_CORRESPONDENCES:
         raise JaxStereoError(f"only {int(inlier.sum())} correspondences agree with the rig's epipolar geometry; "
@@ -514,8 +517,13 @@ def refine_rig(
     data = _Data(model, pl, pr, gcp, pixel_sigma, control_sigma_m, robust_sigmas)
     base_sigma = dem_sigma_m if isinstance(control, DEM) else floor_sigma_m
     theta0 = jnp.zeros(model.size)
+    start_outcomes = []
+    if "water" in which and len(which) > 1:
+        theta0, start_outcomes = _start_at_the_guessed_level(rig, level_guess, which, data, control, mask, heights,
+                                                             in_region, base_sigma, floor_band_m, max_steps)
     theta, mask, heights, surface_sigma, outcomes, steps = _solve_and_reselect(
         data, theta0, control, mask, heights, in_region, base_sigma, floor_band_m, max_steps)
+    outcomes = start_outcomes + outcomes
     problem = data.problem(mask, heights, surface_sigma)
     rms_before, rms_after = (_reprojection_rms(t, problem, len(pl)) for t in (theta0, theta))
     size = _padded_size(len(pl))
@@ -532,7 +540,12 @@ def refine_rig(
     right, interface, params = _parameters(model, which, theta, std, frame_std)
     level_std = params.get("water level (m)", (0.0, 0.0))[1]
     converged = all(o == "converged" for o in outcomes)
-    determined = bool(np.isfinite(level_std) and level_std < LEVEL_STD_LIMIT_M and converged)
+    submerged = int(np.sum(data.points(theta)[:, 2] < float(interface.level)))
+    if "water" in which and submerged < MIN_CORRESPONDENCES:
+        log.warning("at the refined level (%.4f m) only %d correspondences lie under the water: the images do not "
+                    "fix it there", float(interface.level), submerged)
+    determined = bool(np.isfinite(level_std) and level_std < LEVEL_STD_LIMIT_M and converged
+                      and ("water" not in which or submerged >= MIN_CORRESPONDENCES))
     fit_std = float(std[0] * 1e-2) if "water" in which else float("nan")
     calibration = dict(rig.calibration)
     calibration["refine"] = {"parameters": {k_: list(v) for k_, v in params.items()},
@@ -544,7 +557,26 @@ def refine_rig(
     refined = Rig(rig.left, right, interface, calibration)
     return RefineResult(refined, params, determined, rms_before, rms_after, int(len(pl)),
                         int(mask.sum()) + int(gcp[0].shape[0]), steps, outcomes[-1], time.perf_counter() - start,
-                        surface_sigma, converged, fit_std, frame_std)
+                        surface_sigma, converged, fit_std, frame_std, submerged)
+
+
+def _start_at_the_guessed_level(rig, level_guess, which, data: _Data, control, mask, heights, in_region,
+                                base_sigma, floor_band_m, max_steps):
+    """The starting parameters of a refinement that frees the level with the pose (or tilt): the other
+    parameters solved first with the level held at the guess, the level's own entry left at the guess.
+
+    Started all at once from a camera bumped by a fraction of a degree, the solver can lower the level under
+    every correspondence, where no point is refracted, the level moves nothing, and the step is zero: a
+    stationary point that is no solution. With the pose settled first the level starts where the water is.
+
+    **Returns:** `(theta0, outcomes)`: the full parameter vector and the first solves' outcomes in words.
+    """
+    rest = tuple(name for name in which if name != "water")
+    model, _ = _build_model(rig, level_guess, rest)
+    first = dataclasses.replace(data, model=model)
+    theta, *_, outcomes, _ = _solve_and_reselect(first, jnp.zeros(model.size), control, mask, heights, in_region,
+                                                 base_sigma, floor_band_m, max_steps)
+    return jnp.concatenate([jnp.zeros(1), jnp.asarray(theta)]), outcomes
 
 
 def _checked_pixels(left_pixels, right_pixels) -> tuple[np.ndarray, np.ndarray]:

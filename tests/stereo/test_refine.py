@@ -91,6 +91,24 @@ def test_level_and_pose_from_a_dry_dem_of_the_parts_that_did_not_move(flume):
         refine_rig(Rig(left, right), pl, pr, LEVEL, control=_dry_dem(scene, shift_x=5.0))
 
 
+def test_each_correspondence_counts_once_wherever_it_sits_in_the_list(flume):
+    """Correspondences are padded to a power of two with copies of the first; the copies weigh nothing. One
+    bad correspondence (1.5 px off, inside the gate) moves the level as little first in the list as last."""
+    spec, scene, left, right = flume
+    pl, pr, points = _correspondences(scene, left, right, 300, 0.1, seed=4)
+    bad = int(np.nonzero(np.asarray(points)[:, 2] < LEVEL - 0.05)[0][0])  # a submerged one: it pulls the level
+    pr = pr.copy()
+    pr[bad, 0] += 1.5
+    levels = []
+    for order in (np.r_[bad, np.delete(np.arange(len(pl)), bad)], np.r_[np.delete(np.arange(len(pl)), bad), bad]):
+        result = refine_rig(Rig(left, right), pl[order], pr[order], LEVEL + 0.01, refine=("water",), control="floor",
+                            floor_region=(-0.75, spec.toe_x_m - 2 * spec.dn50_m))
+        levels.append(result.parameters["water level (m)"][0])
+        assert result.n_correspondences == len(pl)
+    assert abs(levels[0] - levels[1]) < 1e-6
+    assert abs(levels[1] - LEVEL) < 1e-3
+
+
 def test_level_not_determined_is_said(flume):
     spec, scene, left, right = flume
     pl, pr, _ = _correspondences(scene, left, right, 1500, 0.1)
@@ -102,6 +120,9 @@ def test_level_not_determined_is_said(flume):
     result = refine_rig(Rig(left, right), pl, pr, LEVEL + 0.05, refine=("water", "right-pose"), control="floor",
                         floor_region=(-0.75, spec.toe_x_m - 2 * spec.dn50_m))
     assert not result.level_determined
+    # A level under every correspondence refracts nothing: the solver stops there (zero step), undetermined.
+    result = refine_rig(Rig(left, right), pl, pr, -0.3, refine=("water",), control=_dry_dem(scene))
+    assert result.n_submerged == 0 and not result.level_determined
 
 
 def test_same_minimum_as_scipy(flume, x64):  # differentiates the residual itself, as a user would in 64 bits
