@@ -1,0 +1,29 @@
+"""The refinement's correspondences: which Lucas-Kanade window each match is measured with."""
+
+import numpy as np
+
+from jaxstereo._stereo.correspondences import plane_residual_rms
+
+
+def test_plane_residual_is_zero_on_a_plane_and_the_lstsq_residual_elsewhere():
+    rng = np.random.default_rng(1)
+    h, w, window = 60, 80, 31
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    plane = 200.0 + 0.3 * u - 0.1 * v
+    rough = plane + 0.004 * (u - 40.0) ** 2 + rng.normal(0.0, 0.2, (h, w))
+    rough[rng.random((h, w)) < 0.2] = np.nan  # unmatched pixels
+    rows, cols = np.array([30, 20, 40, 2]), np.array([40, 25, 60, 2])
+    assert np.allclose(plane_residual_rms(plane, rows, cols, window)[:3], 0.0, atol=1e-9)
+    got = plane_residual_rms(rough, rows, cols, window)
+    half = window // 2
+    for k, (r, c) in enumerate(zip(rows[:3], cols[:3])):  # numpy reference: lstsq on the box's matched pixels
+        patch = rough[r - half : r + half + 1, c - half : c + half + 1]
+        dy, dx = np.mgrid[-half : half + 1, -half : half + 1]
+        ok = np.isfinite(patch)
+        design = np.stack([np.ones(ok.sum()), dx[ok], dy[ok]], axis=1)
+        coef, *_ = np.linalg.lstsq(design, patch[ok], rcond=None)
+        assert abs(got[k] - np.sqrt(np.mean((patch[ok] - design @ coef) ** 2))) < 1e-9
+    # The curvature (0.004 px/px^2 over +-15 px: 0.27 px RMS from a plane) with the noise (0.2 px): about 0.33 px.
+    assert 0.28 < got[0] < 0.40
+    # In the corner the box lies mostly outside the image: fewer than half its pixels, no value.
+    assert np.isnan(got[3])
