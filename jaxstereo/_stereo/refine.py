@@ -525,7 +525,7 @@ def refine_rig(
         data, theta0, control, mask, heights, in_region, base_sigma, floor_band_m, max_steps)
     outcomes = start_outcomes + outcomes
     problem = data.problem(mask, heights, surface_sigma)
-    rms_before, rms_after = (_reprojection_rms(t, problem, len(pl)) for t in (theta0, theta))
+    rms_before, rms_after = (_reprojection_rms(t, problem, len(pl)) for t in (jnp.zeros(model.size), theta))
     size = _padded_size(len(pl))
     groups = [np.concatenate([j * size + np.arange(len(pl)) for j in range(4)]), 4 * size + np.nonzero(mask)[0],
               5 * size + np.arange(3 * gcp[0].shape[0])]
