@@ -138,8 +138,8 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     each pixel's disparity is the least-squares shift of its patch, linearised about the whole-pixel
     disparities floor(d) and floor(d) + 1 of the pixels in the patch (right image sampled at whole pixels,
     never interpolated: interpolation blurs fine texture by an amount that depends on the fraction, and
-    dense steps from fractional starts mix the neighbours' own shifts), and the two estimates weighted by
-    SGBM's fraction. It is kept only where the patch's SGBM disparities agree within `MAX_SPREAD_PX`
+    dense steps from fractional starts mix the neighbours' own shifts), each pixel's two linearisations weighted
+    by its SGBM fraction inside the patch's sums. It is kept only where the patch's SGBM disparities agree within `MAX_SPREAD_PX`
     (standard deviation; a smooth surface, not an edge) and it stays within 1 px of SGBM's; elsewhere
     SGBM's value is kept. With a `small_window`, the same fit over that smaller patch replaces the large
     one's where the two differ by more than `WINDOW_AGREEMENT` standard deviations of their difference (or
@@ -147,7 +147,8 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     POV-Ray flume's rubble the 31 px patch smooths rocks 0.6 Dn50 wide; the 15 px patch there brings the
     wet and dry surveys' median difference from 1.65 to 1.3 mm, while the flat board keeps the large patch.
     Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them.
-    On the POV-Ray flume's board: 0.18 px RMS against SGBM's 0.29 px, bias 0.01 px against 0.04.
+    On the POV-Ray flume's nadir board the survey's error normal to the board is 1.26 mm RMS under water and
+    0.8 mm above it (SGBM's own sub-pixel values: 3.09 mm under water).
 
     The standard deviation is the least-squares one, `sqrt(s2 / sum(g^2))` with `s2` the patch's residual
     variance at the estimate (linearised about the lower whole-pixel bases) and `g` the right image's
@@ -229,11 +230,16 @@ def _refine_in_windows(products, d0, shift, fraction, weight, valid, window: int
     their standard deviations (h, w, or None without `with_sigma`), and where they are kept (h, w) bool: the
     patch's SGBM disparities agree within `MAX_SPREAD_PX`, it is at least half matched, and the refined
     value stays within 1 px of SGBM's."""
-    fits = [_window_fit(p, (window, window), channels) for p in products]
-    refined = (1 - fraction) * (fits[0][2] + shift) + fraction * (fits[1][2] + shift)
+    # Each pixel's equation is linearised about both of its whole-pixel bases, weighted by its SGBM fraction,
+    # before the window sums: blending the two windows' solutions with the centre pixel's fraction instead
+    # carried that one fraction's noise (SGBM's, 0.3 px) into the result, times the two linearisations'
+    # difference (on the POV-Ray flume's nadir board, 0.09 px of pixel-to-pixel noise: 1.85 mm RMS
+    # under water where the blend inside the sums gives 1.26 mm).
+    blended = [(1 - fraction) * a + fraction * b for a, b in zip(products[0][:4], products[1][:4])]
+    refined = _window_fit(blended, (window, window), channels)[2] + shift
     sigma_refined = None
     if with_sigma:
-        gg, s2 = _evaluate(fits[0], refined - shift)
+        gg, s2 = _evaluate(_window_fit(products[0], (window, window), channels), refined - shift)
         sigma_refined = MATCH_NOISE_SCALE * np.sqrt(s2 / np.maximum(gg, 1e-12))
     box = (window, window)
     count = cv2.boxFilter(weight, -1, box, normalize=False)
@@ -267,9 +273,13 @@ def _disagreement(sgbm, refined, keep, sigma_sgbm, window: int, block: int):
 
 
 # Least-squares standard deviations assume independent pixel noise; JPEG blocks, demosaicing and the Sobel
-# gradient correlate neighbouring pixels. The factors were measured once, on the POV-Ray development flume's
-# nadir board (predicted against measured disparity RMS, see `experiments/uncertainty.py`).
-MATCH_NOISE_SCALE = 4.0
+# gradient correlate neighbouring pixels. The factors were measured on the POV-Ray development flume's boards
+# (predicted against measured error per 5 cm layer, see `experiments/uncertainty.py`). The Lucas-Kanade one was
+# 4.0 while the two linearisations were blended after the window sums (their noise was not in the formula);
+# with the blend inside the sums no single factor fits both rigs within 30 %: the nadir board asks for 1.9 or
+# more (its predicted RMS 0.72-0.89 of the measured at 1.9), the oblique for 1.85 or less (1.02-1.31 at 1.9).
+# 2.0 errs on the side of the larger error bars.
+MATCH_NOISE_SCALE = 2.0
 SGBM_NOISE_SCALE = 1.4
 MAX_SPREAD_PX = 0.5  # a patch whose SGBM disparities spread more (std) straddles an edge: SGBM's value stays
 
