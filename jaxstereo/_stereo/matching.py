@@ -147,7 +147,7 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     POV-Ray flume's rubble the 31 px patch smooths rocks 0.6 Dn50 wide; the 15 px patch there brings the
     wet and dry surveys' median difference from 1.65 to 1.3 mm, while the flat board keeps the large patch.
     Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them.
-    On the POV-Ray flume's nadir board the survey's error normal to the board is 1.26 mm RMS under water and
+    On the POV-Ray flume's nadir board the survey's error normal to the board is 1.29 mm RMS under water and
     0.8 mm above it (SGBM's own sub-pixel values: 3.09 mm under water).
 
     The standard deviation is the least-squares one, `sqrt(s2 / sum(g^2))` with `s2` the patch's residual
@@ -234,7 +234,7 @@ def _refine_in_windows(products, d0, shift, fraction, weight, valid, window: int
     # before the window sums: blending the two windows' solutions with the centre pixel's fraction instead
     # carried that one fraction's noise (SGBM's, 0.3 px) into the result, times the two linearisations'
     # difference (on the POV-Ray flume's nadir board, 0.09 px of pixel-to-pixel noise: 1.85 mm RMS
-    # under water where the blend inside the sums gives 1.26 mm).
+    # under water where the blend inside the sums gives 1.29 mm).
     blended = [(1 - fraction) * a + fraction * b for a, b in zip(products[0][:4], products[1][:4])]
     refined = _window_fit(blended, (window, window), channels)[2] + shift
     sigma_refined = None
