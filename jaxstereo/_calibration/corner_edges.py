@@ -44,6 +44,22 @@ def _half_edges(grid: np.ndarray, r: int, c: int, axis: int) -> list[np.ndarray]
     return out
 
 
+def _scan(grey: np.ndarray, p: np.ndarray, u: np.ndarray, q: np.ndarray, half_width: int):
+    """The pixels across the edge through `p` along unit `u`, on the pixel row (or column, for an edge nearer
+    the horizontal) nearest the point `q`: `(profile, first pixel's index across, row, across index, row index,
+    the edge's predicted position across)`, or None where the scan leaves the image."""
+    scan_rows = abs(u[1]) >= abs(u[0])
+    a_idx, b_idx = (0, 1) if scan_rows else (1, 0)  # a: the coordinate scanned across, b: the row's own
+    line = round(q[b_idx])
+    across = p[a_idx] + (line - p[b_idx]) * u[a_idx] / u[b_idx]
+    lo = int(np.floor(across)) - half_width
+    hi = int(np.floor(across)) + half_width + 1
+    if lo < 0 or hi >= grey.shape[b_idx] or not 0 <= line < grey.shape[1 - b_idx]:
+        return None
+    profile = grey[line, lo:hi + 1] if scan_rows else grey[lo:hi + 1, line]
+    return profile, lo, line, a_idx, b_idx, across
+
+
 def _crossing(grey: np.ndarray, p: np.ndarray, u: np.ndarray, s: float, other: np.ndarray, far: np.ndarray,
               half_width: int) -> tuple[float, float, float] | None:
     """Where the edge leaving `p` along unit `u` crosses the pixel row (or column) at distance `s` along it.
@@ -52,22 +68,15 @@ def _crossing(grey: np.ndarray, p: np.ndarray, u: np.ndarray, s: float, other: n
     whose own other edge crosses the same rows. Returns (x, y, contrast) or None when the scan would see
     another edge, leave the image or find no step.
     """
-    scan_rows = abs(u[1]) >= abs(u[0])
-    a_idx, b_idx = (0, 1) if scan_rows else (1, 0)  # a: the coordinate scanned across, b: the row's own
-    q = p + s * u
-    line = round(q[b_idx])
-    across = p[a_idx] + (line - p[b_idx]) * u[a_idx] / u[b_idx]
+    scanned = _scan(grey, p, u, p + s * u, half_width)
+    if scanned is None:
+        return None
+    profile, lo, line, a_idx, b_idx, across = scanned
     for start in (p, far):  # the corner's other edge and the far corner's, where they cross this row
         if abs(other[b_idx]) > 1e-9:
             where = start[a_idx] + (line - start[b_idx]) * other[a_idx] / other[b_idx]
             if abs(where - across) < half_width + 2:
                 return None
-    lo = int(np.floor(across)) - half_width
-    hi = int(np.floor(across)) + half_width + 1
-    size = grey.shape[1] if scan_rows else grey.shape[0]
-    if lo < 0 or hi >= size or not 0 <= line < (grey.shape[0] if scan_rows else grey.shape[1]):
-        return None
-    profile = grey[line, lo:hi + 1] if scan_rows else grey[lo:hi + 1, line]
     first, last = profile[:2].mean(), profile[-2:].mean()
     contrast = abs(last - first)
     if contrast == 0:
@@ -81,10 +90,9 @@ def _crossing(grey: np.ndarray, p: np.ndarray, u: np.ndarray, s: float, other: n
     return point[0], point[1], contrast
 
 
-def _edge_line(grey, grid, r, c, axis, other_axis_dir, half_width):
-    """The edge through corner (r, c) along `axis`, near the corner: (point, unit direction), or None."""
-    p = grid[r, c]
-    vectors = _half_edges(grid, r, c, axis)
+def _edge_line(grey, p, vectors, other_axis_dir, half_width):
+    """The edge through corner `p` along its two half-edge `vectors` (pixels), near the corner: (point, unit
+    direction), or None; `other_axis_dir` is the direction of the corner's other edge."""
     direction = vectors[0] - vectors[1]
     direction /= np.linalg.norm(direction)
     normal = np.array([-direction[1], direction[0]])
@@ -128,17 +136,10 @@ def edge_blur_px(grey: np.ndarray, grid: np.ndarray) -> float:
         starts = grid[:-1] if axis == 0 else grid[:, :-1]
         ends = grid[1:] if axis == 0 else grid[:, 1:]
         for p, q in zip(starts.reshape(-1, 2), ends.reshape(-1, 2)):
-            u = (q - p) / np.linalg.norm(q - p)
-            scan_rows = abs(u[1]) >= abs(u[0])
-            a_idx, b_idx = (0, 1) if scan_rows else (1, 0)
-            mid = 0.5 * (p + q)
-            line = round(mid[b_idx])
-            across = p[a_idx] + (line - p[b_idx]) * u[a_idx] / u[b_idx]
-            lo, hi = int(np.floor(across)) - MAX_HALF_WIDTH, int(np.floor(across)) + MAX_HALF_WIDTH + 1
-            if lo < 0 or hi >= grey.shape[1 if scan_rows else 0] or not 0 <= line < grey.shape[0 if scan_rows else 1]:
+            scanned = _scan(grey, p, (q - p) / np.linalg.norm(q - p), 0.5 * (p + q), MAX_HALF_WIDTH)
+            if scanned is None:
                 continue
-            profile = grey[line, lo:hi + 1] if scan_rows else grey[lo:hi + 1, line]
-            step = np.abs(np.diff(profile))
+            step = np.abs(np.diff(scanned[0]))
             step = np.maximum(step - 0.1 * step.max(), 0.0)  # the plateaus' noise is not the edge's width
             if step.sum() <= 0:
                 continue
@@ -172,8 +173,8 @@ def refine_chessboard_corners(grey: np.ndarray, pixels: np.ndarray, rows: int, c
             along_cols = _half_edges(grid, r, c, 1)
             dir_rows = along_rows[0] - along_rows[1]
             dir_cols = along_cols[0] - along_cols[1]
-            first = _edge_line(grey, grid, r, c, 1, dir_rows, half_width)
-            second = _edge_line(grey, grid, r, c, 0, dir_cols, half_width)
+            first = _edge_line(grey, grid[r, c], along_cols, dir_rows, half_width)
+            second = _edge_line(grey, grid[r, c], along_rows, dir_cols, half_width)
             if first is None or second is None:
                 continue
             (p1, d1), (p2, d2) = first, second

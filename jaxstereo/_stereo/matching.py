@@ -141,9 +141,9 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     dense steps from fractional starts mix the neighbours' own shifts), each pixel's two linearisations weighted
     by its SGBM fraction inside the patch's sums. It is kept only where the patch's SGBM disparities agree
     within `MAX_SPREAD_PX` (standard deviation; a smooth surface, not an edge) and it stays within 1 px of
-    SGBM's; elsewhere SGBM's value is kept. With a `small_window`, the same fit over that smaller patch replaces the large
-    one's where the two differ by more than `WINDOW_AGREEMENT` standard deviations of their difference (or
-    only the small one is kept): a curved surface (rubble) whose relief the large patch averages over. On the
+    SGBM's; elsewhere SGBM's value is kept. With a `small_window`, the same fit over that smaller patch
+    replaces the large one's where the two differ by more than `WINDOW_AGREEMENT` standard deviations of
+    their difference (or only the small one is kept): a curved surface (rubble) whose relief the large patch averages over. On the
     POV-Ray flume's rubble the 31 px patch smooths rocks 0.6 Dn50 wide; the 15 px patch there brings the
     wet and dry surveys' median difference from 1.65 to 1.3 mm, while the flat board keeps the large patch.
     Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them.
