@@ -143,9 +143,10 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     within `MAX_SPREAD_PX` (standard deviation; a smooth surface, not an edge) and it stays within 1 px of
     SGBM's; elsewhere SGBM's value is kept. With a `small_window`, the same fit over that smaller patch
     replaces the large one's where the two differ by more than `WINDOW_AGREEMENT` standard deviations of
-    their difference (or only the small one is kept): a curved surface (rubble) whose relief the large patch averages over. On the
-    POV-Ray flume's rubble the 31 px patch smooths rocks 0.6 Dn50 wide; the 15 px patch there brings the
-    wet and dry surveys' median difference from 1.65 to 1.3 mm, while the flat board keeps the large patch.
+    their difference (or only the small one is kept): a curved surface (rubble) whose relief the large patch
+    averages over. On the POV-Ray flume's rubble the 31 px patch smooths rocks 0.6 Dn50 wide; the 15 px patch
+    there brings the wet and dry surveys' median difference from 1.65 to 1.3 mm, while the flat board keeps
+    the large patch.
     Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them.
     On the POV-Ray flume's nadir board the survey's error normal to the board is 1.29 mm RMS under water and
     0.8 mm above it (SGBM's own sub-pixel values: 3.09 mm under water).
