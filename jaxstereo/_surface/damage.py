@@ -111,24 +111,71 @@ def _zones(X, D, sign):
     return zones
 
 
-def outer_envelope(X: np.ndarray, Z: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """The outer envelope of a polyline in the slope frame: the largest Z' (m) over every part of the
-    polyline (vertices `X`, `Z` (n,) metres, in order along the profile) above each abscissa `at` (m,);
-    NaN outside the polyline's range. Exact at the vertices; linear in between, as the polyline.
-
-    The polyline is cut where it turns back along X' into monotonic runs, each interpolated on its own.
-    """
+def _monotonic_runs(X: np.ndarray, Z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A polyline (vertices `X`, `Z` in order along the profile) cut where it turns back along X' into
+    monotonic runs, each returned as `(xs, zs)` with `xs` increasing."""
     step = np.sign(np.diff(X))
     # A segment normal to the slope (no step along it) continues the run before it.
     step = step[np.maximum.accumulate(np.where(step != 0, np.arange(step.size), 0))]
     cuts = np.nonzero(step[1:] != step[:-1])[0] + 1
-    out = np.full(np.shape(at), np.nan)
+    runs = []
     for start, end in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [step.size]])):
-        xs, zs = X[start:end + 1], Z[start:end + 1]
-        if xs[-1] < xs[0]:
-            xs, zs = xs[::-1], zs[::-1]
-        out = np.fmax(out, np.interp(at, xs, zs, left=np.nan, right=np.nan))
-    return out
+        xs, zs = X[start : end + 1], Z[start : end + 1]
+        runs.append((xs[::-1], zs[::-1]) if xs[-1] < xs[0] else (xs, zs))
+    return runs
+
+
+def _run_values(runs, at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each run's Z' at the abscissae `at` (n_runs, n), NaN outside the run's closed range, and the runs'
+    first and last abscissae (n_runs, 1)."""
+    values = np.array([np.interp(at, xs, zs, left=np.nan, right=np.nan) for xs, zs in runs])
+    starts = np.array([xs[0] for xs, _ in runs])[:, None]
+    ends = np.array([xs[-1] for xs, _ in runs])[:, None]
+    return values, starts, ends
+
+
+def _envelope_sides(runs, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The outer envelope's limits from the left and from the right at each abscissa `at` (n,): the largest
+    Z' over the runs that reach the point from that side (NaN where none does). They differ where a run
+    ends: the edge of a face that overhangs the slope, where the envelope jumps."""
+    values, starts, ends = _run_values(runs, at)
+    left = np.where((starts < at) & (at <= ends), values, -np.inf).max(axis=0)
+    right = np.where((starts <= at) & (at < ends), values, -np.inf).max(axis=0)
+    return np.where(np.isfinite(left), left, np.nan), np.where(np.isfinite(right), right, np.nan)
+
+
+def _with_crossings(at: np.ndarray, runs) -> np.ndarray:
+    """`at` (sorted, holding every vertex of the runs) with the points added where the highest run changes
+    between two neighbours: the envelope's kinks, so that it is linear between the returned abscissae."""
+    values, starts, ends = _run_values(runs, at)
+    a, b = at[:-1], at[1:]
+    covers = (starts <= a) & (b <= ends)  # the runs over each whole interval (n_runs, n - 1)
+    if not covers.any():
+        return at
+    start_vals = np.where(covers, values[:, :-1], -np.inf)
+    end_vals = np.where(covers, values[:, 1:], -np.inf)
+    top_a, top_b = start_vals.argmax(axis=0), end_vals.argmax(axis=0)
+    k = np.nonzero(covers.any(axis=0) & (top_a != top_b))[0]
+    d0 = values[top_a[k], k] - values[top_b[k], k]  # >= 0: run top_a leads at the interval's start
+    d1 = values[top_a[k], k + 1] - values[top_b[k], k + 1]  # <= 0: run top_b leads at its end
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = d0 / (d0 - d1)
+    inside = np.isfinite(t) & (t > 0) & (t < 1)
+    k, t = k[inside], t[inside]
+    return np.unique(np.concatenate([at, a[k] + t * (b[k] - a[k])]))
+
+
+def outer_envelope(X: np.ndarray, Z: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """The outer envelope of a polyline in the slope frame: the largest Z' (m) over every part of the
+    polyline (vertices `X`, `Z` (n,) metres, in order along the profile) above each abscissa `at` (m,);
+    NaN outside the polyline's range. Exact at the vertices; linear in between, as the polyline, except
+    where two parts of the polyline cross.
+
+    The polyline is cut where it turns back along X' into monotonic runs, each interpolated on its own.
+    """
+    values, _, _ = _run_values(_monotonic_runs(X, Z), np.asarray(at, dtype=np.float64))
+    top = np.where(np.isfinite(values), values, -np.inf).max(axis=0)
+    return np.where(np.isfinite(top), top, np.nan)
 
 
 def slope_abscissa(z: float, cot: float, origin=(0.0, 0.0)) -> float:
@@ -171,9 +218,18 @@ def profile_damage(initial: tuple[ArrayLike, ArrayLike], final: tuple[ArrayLike,
         if hi <= lo:
             raise JaxStereoError(f"the profiles do not reach the active zone ({active_zone[0]:.3f} to "
                                  f"{active_zone[1]:.3f} m along the slope)")
+    runs_i, runs_f = _monotonic_runs(Xi, Zi), _monotonic_runs(Xf, Zf)
     X = np.unique(np.concatenate([Xi, Xf, [lo, hi]]))
+    X = _with_crossings(_with_crossings(X, runs_i), runs_f)
     X = X[(X >= lo) & (X <= hi)]
-    D = outer_envelope(Xf, Zf, X) - outer_envelope(Xi, Zi, X)
+    # Both envelopes are linear between these abscissae but may jump at them (the edge of an overhanging
+    # face): the difference is swept through each abscissa's limit from the left, then from the right.
+    (left_i, right_i), (left_f, right_f) = _envelope_sides(runs_i, X), _envelope_sides(runs_f, X)
+    X = np.repeat(X, 2)
+    D = np.stack([left_f - left_i, right_f - right_i], axis=1).ravel()
+    D[0] = D[-1] = np.nan  # the sweep starts at lo and ends at hi: nothing from beyond them
+    known = np.isfinite(D)
+    X, D = X[known], D[known]
     erosion = _zones(X, D, -1.0)
     accretion = _zones(X, D, +1.0)
     biggest = max(erosion, key=lambda zn: zn.area) if erosion else Zone(0.0, 0.0, 0.0, 0.0, 0.0)

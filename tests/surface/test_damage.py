@@ -272,3 +272,28 @@ def test_profiler_foot_bridges_crevices_and_keeps_holes():
     assert seen[:, 25].min() > -0.005  # bridged (the ball sags at most r - sqrt(r^2 - 3^2) mm)
     assert seen[50, 75] == pytest.approx(-0.02)  # the hole's middle
     assert abs(seen[50, 20]) < 1e-12  # the spike removed
+
+
+def test_overhanging_faces_sampled_apart_add_no_false_erosion():
+    # Rubble seen twice: the same blocks, each with a vertical landward face (which folds the profile back
+    # along the slope), in two surveys whose 5 mm cells fall 2 mm apart. The outer envelopes jump at the
+    # faces' edges in slightly different places; the area between them is a few small slivers, not a
+    # trapezoid bridged from each jump to the next vertex (which read S 0.5-1.5 on an undamaged model).
+    origin = (0.1, 0.05)
+    rng = np.random.default_rng(3)
+    heights = rng.uniform(0.01, 0.06, 12)
+
+    def surface(x):
+        slope = origin[1] + (x - origin[0]) / COT
+        block = np.floor((x - 0.1) / 0.04).astype(int)
+        inside = (block >= 0) & (block < heights.size) & ((x - 0.1) % 0.04 < 0.03)
+        return slope + np.where(inside, heights[np.clip(block, 0, heights.size - 1)], 0.0)
+
+    x_initial = np.arange(0.0, 0.7, 0.005)
+    x_final = x_initial + 0.002
+    initial, final = (x_initial, surface(x_initial)), (x_final, surface(x_final))
+    dmg = profile_damage(initial, final, DN50, COT, origin=origin)
+    area, _ = _dense_envelope_damage(initial, final, COT, origin)
+    eroded = sum(zone.area for zone in dmg.erosion)
+    assert abs(eroded - area) < 0.01 * area + 1e-7
+    assert dmg.S < 0.1  # the largest sliver
