@@ -5,8 +5,10 @@ Z' normal to it, outwards), their abscissae merged, and the difference `final - 
 sign changes. Where a profile drops more steeply than the design slope rises (the landward face of a
 rock), its rotated polyline folds back along X'; each profile is then taken as its outer envelope (the
 largest Z' over every part of the polyline above an abscissa), the surface a probe coming along the
-slope's normal touches. Each negative stretch is an erosion zone with its area `A_e`, length `L_e` (along the
-slope) and maximum depth `d_e` (normal to the slope); the largest is reported.
+slope's normal touches; it jumps at the edge of such a face, and the difference is swept through each
+jump's two sides, not bridged to the next vertex. Each negative stretch is an erosion zone with its
+area `A_e`, length `L_e` (along the slope) and maximum depth `d_e` (normal to the slope); the largest is
+reported.
 `S = A_e / Dn50^2`, `E2D = d_e / Dn50`. Over a stretch, 3-D volumes and `E3D` come from DEM differences.
 """
 
