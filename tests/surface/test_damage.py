@@ -278,7 +278,8 @@ def test_overhanging_faces_sampled_apart_add_no_false_erosion():
     # Rubble seen twice: the same blocks, each with a vertical landward face (which folds the profile back
     # along the slope), in two surveys whose 5 mm cells fall 2 mm apart. The outer envelopes jump at the
     # faces' edges in slightly different places; the area between them is a few small slivers, not a
-    # trapezoid bridged from each jump to the next vertex (which read S 0.5-1.5 on an undamaged model).
+    # trapezoid bridged from each jump to the next vertex (which gave a per-profile S of 1.56 on a true rubble
+    # surface against itself with 1 mm of noise, and 0.84 on the POV-Ray flume's undamaged model).
     origin = (0.1, 0.05)
     rng = np.random.default_rng(3)
     heights = rng.uniform(0.01, 0.06, 12)
