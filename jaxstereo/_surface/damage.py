@@ -167,19 +167,6 @@ def _with_crossings(at: np.ndarray, runs) -> np.ndarray:
     return np.unique(np.concatenate([at, a[k] + t * (b[k] - a[k])]))
 
 
-def outer_envelope(X: np.ndarray, Z: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """The outer envelope of a polyline in the slope frame: the largest Z' (m) over every part of the
-    polyline (vertices `X`, `Z` (n,) metres, in order along the profile) above each abscissa `at` (m,);
-    NaN outside the polyline's range. Exact at the vertices; linear in between, as the polyline, except
-    where two parts of the polyline cross.
-
-    The polyline is cut where it turns back along X' into monotonic runs, each interpolated on its own.
-    """
-    values, _, _ = _run_values(_monotonic_runs(X, Z), np.asarray(at, dtype=np.float64))
-    top = np.where(np.isfinite(values), values, -np.inf).max(axis=0)
-    return np.where(np.isfinite(top), top, np.nan)
-
-
 def slope_abscissa(z: float, cot: float, origin=(0.0, 0.0)) -> float:
     """Abscissa along the design slope (m, the frame of `to_slope_frame`) of the slope line's point at height z."""
     return (z - origin[1]) * float(np.hypot(cot, 1.0))
