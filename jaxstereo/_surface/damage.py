@@ -85,31 +85,30 @@ def to_slope_frame(x, z, cot: float, origin=(0.0, 0.0)):
 
 
 def _zones(X, D, sign):
-    """Zones where `sign * D > 0` on the piecewise-linear difference D(X), crossing points inserted."""
+    """Zones where `sign * D > 0` on the piecewise-linear difference D(X), crossing points inserted.
+
+    A zone runs on while one end of each piece of D is on its side: where the profiles only touch (D reaches
+    zero at one abscissa and turns back) it goes on, as the paper's sweep has it; it ends where D crosses to the
+    other side or stays at zero over a stretch."""
     zones = []
-    inside = False
-    area = depth = start = 0.0
-    for k in range(len(X)):
-        v = sign * D[k]
-        if k > 0:
-            v0 = sign * D[k - 1]
-            x0, x1 = X[k - 1], X[k]
-            if (v0 > 0) != (v > 0) and v0 != v:
-                xc = x0 + (x1 - x0) * v0 / (v0 - v)  # where the difference crosses zero
-                if v0 > 0:  # leaving a zone: add the triangle up to the crossing
-                    area += 0.5 * v0 * (xc - x0)
-                    zones.append(Zone(start, xc, xc - start, area, depth))
-                    inside = False
-                else:  # entering a zone at the crossing
-                    inside, start, area, depth = True, xc, 0.5 * v * (x1 - xc), max(v, 0.0)
-                continue
-            if inside:
-                area += 0.5 * (v0 + v) * (x1 - x0)
-                depth = max(depth, v)
-        elif v > 0:
-            inside, start, area, depth = True, X[0], 0.0, v
-    if inside:
-        zones.append(Zone(start, X[-1], X[-1] - start, area, depth))
+    current = None  # [start, area, depth, end]
+    for k in range(len(X) - 1):
+        x0, x1, v0, v1 = X[k], X[k + 1], sign * D[k], sign * D[k + 1]
+        pieces = [(x0, x1, v0, v1)]
+        if v0 * v1 < 0:
+            xc = x0 + (x1 - x0) * v0 / (v0 - v1)  # where the difference crosses zero
+            pieces = [(x0, xc, v0, 0.0), (xc, x1, 0.0, v1)]
+        for a, b, va, vb in pieces:
+            if va > 0 or vb > 0:
+                if current is None:
+                    current = [a, 0.0, 0.0, a]
+                current[1] += 0.5 * (max(va, 0.0) + max(vb, 0.0)) * (b - a)
+                current[2], current[3] = max(current[2], va, vb), b
+            elif current is not None and b > a:  # a stretch at zero (not one abscissa's two sides) ends it
+                zones.append(Zone(current[0], current[3], current[3] - current[0], current[1], current[2]))
+                current = None
+    if current is not None:
+        zones.append(Zone(current[0], current[3], current[3] - current[0], current[1], current[2]))
     return zones
 
 

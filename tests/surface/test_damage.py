@@ -65,6 +65,22 @@ def test_several_holes_are_all_found_and_the_largest_chosen():
     assert abs(dmg.A_e - 0.003) < 1e-12 and abs(dmg.d_e - 0.06) < 1e-12 and abs(dmg.L_e - 0.1) < 1e-12
 
 
+def test_two_pits_that_touch_at_one_point_are_one_zone_and_a_stretch_between_splits_them():
+    """The paper's sweep: where the final profile only touches the initial one (an unmoved rock's top between two
+    removed ones) the erosion zone goes on; a stretch of the slope left as it was ends it."""
+    for gap in (0.0, 0.03):
+        X = np.unique(np.concatenate([np.linspace(-0.5, 0.5, 1001), [-0.1, 0.0, gap, gap + 0.1]]))
+        Z = _notch(X, -0.05, 0.1, 0.0, 0.04) + _notch(X, gap + 0.05, 0.1, 0.0, 0.02)
+        dmg = profile_damage(_slope_profile(X, 0 * X), _slope_profile(X, Z), DN50, COT, origin=(0.1, 0.05))
+        if gap == 0.0:
+            assert len(dmg.erosion) == 1
+            assert dmg.A_e == pytest.approx(0.1 * 0.04 / 2 + 0.1 * 0.02 / 2, abs=1e-12)
+            assert dmg.L_e == pytest.approx(0.2, abs=1e-12) and dmg.d_e == pytest.approx(0.04, abs=1e-12)
+        else:
+            assert len(dmg.erosion) == 2
+            assert dmg.A_e == pytest.approx(0.1 * 0.04 / 2, abs=1e-12) and dmg.L_e == pytest.approx(0.1, abs=1e-12)
+
+
 def test_pure_accretion_gives_zero_damage():
     X = np.unique(np.concatenate([np.linspace(-0.5, 0.5, 501), [-0.1, -0.025, 0.025, 0.1]]))
     Z = -_notch(X, 0.0, 0.2, 0.05, 0.03)  # a mound
