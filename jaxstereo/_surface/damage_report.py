@@ -258,8 +258,9 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir:
                         sigma: "DamageSigma | None" = None) -> list[Path]:
     """Write `damage.json`, `profiles.csv`, `profile.png` (averaged profiles, eroded area shaded) and
     `difference.png` (DEM difference map) to `out_dir`, each atomically. With `sigma` (a `DamageSigma`), every
-    figure's standard deviation goes beside it (`"sigma"` in the JSON, `S_sigma` in the CSV, value +- sigma and
-    2-sigma bands on the figure). Returns the paths."""
+    figure's standard deviation goes beside it (`"sigma"` in the JSON, for the stretch and for each profile, with
+    `S_sigma` per profile; a `*_sigma` column beside each profile's figure in the CSV; value +- sigma and 2-sigma
+    bands on the figure). Returns the paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     report = result.to_dict()
@@ -269,7 +270,9 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir:
                                 "calibration_shared_by_both_surveys": sigma.shared_calibration,
                                 "water_level_shared_by_both_surveys": sigma.shared_level}
         for row in report["profiles"]:
-            row["S_sigma"] = sigma.profile_S.get(round(row["y_m"], 6))
+            figures = sigma.profile_sigma.get(round(row["y_m"], 6))
+            row["S_sigma"] = None if figures is None else figures["S"]
+            row["sigma"] = figures
     write_text_atomic(out / "damage.json", json.dumps(report, indent=2) + "\n")
     write_text_atomic(out / "profiles.csv", _profiles_csv(result, sigma))
     _plot_averaged_profile(result, before, after, out / "profile.png", sigma)
@@ -277,20 +280,28 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir:
     return [out / name for name in ("damage.json", "profiles.csv", "profile.png", "difference.png")]
 
 
+_CSV_FIGURES = (("A_e_m2", "A_e_sigma_m2", "{:.6g}"), ("L_e_m", "L_e_sigma_m", "{:.5g}"),
+                ("d_e_m", "d_e_sigma_m", "{:.5g}"), ("S", "S_sigma", "{:.4g}"), ("E2D", "E2D_sigma", "{:.4g}"))
+
+
 def _profiles_csv(result: StretchDamage, sigma=None) -> str:
-    """One row per profile (y order): its damage (S with its sigma when known) and level, or why it was not
-    computed."""
+    """One row per profile (y order): its damage, each figure with its standard deviation when known (metres,
+    square metres), and its level; or why it was not computed."""
     buf = io.StringIO()
     writer = csv.writer(buf)
-    writer.writerow(["y_m", "A_e_m2", "L_e_m", "d_e_m", "S", "S_sigma", "E2D", "damage_level", "note"])
+    writer.writerow(["y_m", *(name for key, column, _ in _CSV_FIGURES for name in (key, column)), "damage_level",
+                     "note"])
     rows = [(y, p, "") for y, p in result.profiles] + [(y, None, why) for y, why in result.skipped]
     for y, p, why in sorted(rows, key=lambda r: r[0]):
         if p is None:
-            writer.writerow([f"{y:.4f}", "", "", "", "", "", "", "not computed", why])
-        else:
-            s = sigma.profile_S.get(round(y, 6)) if sigma is not None else None
-            writer.writerow([f"{y:.4f}", f"{p.A_e:.6g}", f"{p.L_e:.5g}", f"{p.d_e:.5g}", f"{p.S:.4g}",
-                             "" if s is None else f"{s:.3g}", f"{p.E2D:.4g}", damage_level(p.S, result.cot), ""])
+            writer.writerow([f"{y:.4f}", *[""] * (2 * len(_CSV_FIGURES)), "not computed", why])
+            continue
+        values = {"A_e_m2": p.A_e, "L_e_m": p.L_e, "d_e_m": p.d_e, "S": p.S, "E2D": p.E2D}
+        sigmas = sigma.profile_sigma.get(round(y, 6)) if sigma is not None else None
+        cells = []
+        for key, _, fmt in _CSV_FIGURES:
+            cells += [fmt.format(values[key]), "" if sigmas is None else f"{sigmas[key]:.3g}"]
+        writer.writerow([f"{y:.4f}", *cells, damage_level(p.S, result.cot), ""])
     return buf.getvalue()
 
 

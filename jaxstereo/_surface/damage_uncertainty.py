@@ -40,6 +40,7 @@ DRAWS = 48
 
 FIGURES = ("A_e_m2", "L_e_m", "d_e_m", "S", "E2D", "S_mean_above_threshold", "S_max", "L_e_max_m", "d_e_max_m",
            "eroded_volume_m3", "accreted_volume_m3", "E3D")
+PROFILE_FIGURES = ("A_e_m2", "L_e_m", "d_e_m", "S", "E2D")  # each profile's, with a sigma per profile
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,17 +49,22 @@ class DamageSigma:
 
     **Fields:** `sigma` figure name (`FIGURES`: the averaged profile's `A_e_m2`, `L_e_m`, `d_e_m`, `S`, `E2D`,
     then the stretch's) -> standard deviation in the figure's unit (None where a draw could not compute it);
-    `profile_S` profile y (m) -> sigma of its S; `draws` the number of draws that computed; `failed` those
-    that did not; `shared_calibration` and `shared_level` whether those errors were taken as common to both
-    surveys.
+    `profile_sigma` profile y (m, rounded to 1 um) -> {figure (`PROFILE_FIGURES`) -> standard deviation} for the
+    profiles computed in at least half the draws; `draws` the number of draws that computed; `failed` those that
+    did not; `shared_calibration` and `shared_level` whether those errors were taken as common to both surveys.
     """
 
     sigma: dict
-    profile_S: dict
+    profile_sigma: dict
     draws: int
     failed: int
     shared_calibration: bool
     shared_level: bool
+
+    @property
+    def profile_S(self) -> dict:
+        """Profile y (m) -> the standard deviation of its S."""
+        return {y: figures["S"] for y, figures in self.profile_sigma.items()}
 
 
 def correlated_noise(shape: tuple[int, int], width_cells: float, rng: np.random.Generator) -> np.ndarray:
@@ -98,7 +104,9 @@ def _figures(result: StretchDamage) -> tuple[dict, dict]:
     averaged = d["averaged_profile"]
     values = {key: averaged[key] for key in ("A_e_m2", "L_e_m", "d_e_m", "S", "E2D")}
     values.update({key: d[key] for key in FIGURES if key not in values})
-    return values, {round(y, 6): p.S for y, p in result.profiles}
+    per_profile = {round(y, 6): {"A_e_m2": p.A_e, "L_e_m": p.L_e, "d_e_m": p.d_e, "S": p.S, "E2D": p.E2D}
+                   for y, p in result.profiles}
+    return values, per_profile
 
 
 def damage_sigma(before: DEM, after: DEM, compute: Callable[[DEM, DEM], StretchDamage], shared_calibration: bool,
@@ -150,9 +158,12 @@ def damage_sigma(before: DEM, after: DEM, compute: Callable[[DEM, DEM], StretchD
         column = [s[key] for s in samples]
         sigma[key] = None if any(v is None for v in column) else float(np.std(column, ddof=1))
     ys = set().union(*(set(p) for p in profiles))
-    profile_S = {y: float(np.std([p[y] for p in profiles if y in p], ddof=1)) for y in sorted(ys)
-                 if sum(y in p for p in profiles) >= max(2, len(profiles) // 2)}  # computed in half the draws
-    return DamageSigma(sigma, profile_S, len(samples), failed, shared_calibration, shared_level)
+    profile_sigma = {}
+    for y in sorted(ys):
+        computed = [p[y] for p in profiles if y in p]
+        if len(computed) >= max(2, len(profiles) // 2):  # computed in half the draws
+            profile_sigma[y] = {key: float(np.std([c[key] for c in computed], ddof=1)) for key in PROFILE_FIGURES}
+    return DamageSigma(sigma, profile_sigma, len(samples), failed, shared_calibration, shared_level)
 
 
 def shares_errors(before: DEM, after: DEM) -> tuple[bool, bool]:

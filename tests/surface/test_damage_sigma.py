@@ -75,13 +75,22 @@ def _basin(depth_m=0.0, **layers):
 
 def test_matching_noise_gives_a_sigma_that_grows_with_it():
     """On a smooth basin, where no zone's end jumps, S's error bar is proportional to the matching noise."""
-    sigmas = []
+    sigmas, profile_sigmas = [], []
     for noise in (0.0005, 0.002):
         layers = {"sigma_match": noise, "sigma_calibration": 0.0, "sigma_level": 0.0}
         result = damage_sigma(_basin(**layers), _basin(0.03, **layers), _compute, False, False, draws=24)
         sigmas.append(result.sigma["S"])
         assert set(result.profile_S) and all(v >= 0 for v in result.profile_S.values())
+        inside = [figures for y, figures in result.profile_sigma.items() if abs(y) < 0.04]  # through the basin
+        assert len(inside) >= 2 and all(set(f) == {"A_e_m2", "L_e_m", "d_e_m", "S", "E2D"} for f in inside)
+        profile_sigmas.append(np.median([[f["A_e_m2"], f["d_e_m"]] for f in inside], axis=0))
     assert 0 < sigmas[0] and 3.0 < sigmas[1] / sigmas[0] < 5.0  # four times the noise
+    # One profile's A_e and d_e follow the noise too (measured: 4.0 and 3.5 times; the deepest point is the largest
+    # of several cells' draws, which does not scale exactly), and a profile's depth carries its own cells' noise,
+    # not the stretch's average (0.35 mm for 0.5 mm per cell; the averaged profile's d_e: 0.09 mm).
+    ratio = profile_sigmas[1] / profile_sigmas[0]
+    assert 3.0 < ratio[0] < 5.0 and 3.0 < ratio[1] < 5.0, ratio
+    assert profile_sigmas[0][1] > 0.0005 / 2
 
 
 def test_surfaces_without_sigma_layers_are_refused_with_a_clear_error():
