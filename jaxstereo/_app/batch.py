@@ -194,6 +194,8 @@ def run_batch(manifest_path: PathLike | Manifest, output: PathLike | None = None
     for row in ordered:
         if row["status"] == "failed":
             log(f"  FAILED {row['test']}/{row['stage']}: {row['error']}")
+        for warning in row.get("warnings", []):
+            log(f"  WARNING {row['test']}/{row['stage']}: {warning}")
     log(f"summary: {summary_csv}" + "".join(f"\nfigure: {f}" for f in figures) + f"\nlog: {log_path}")
     return BatchResult(ordered, len(todo), skipped, failed, seconds, out, summary_csv, figures)
 
@@ -216,6 +218,8 @@ def _run_jobs(todo: list, rows: dict, workers: int, scheduler: str | None, recor
                 else:
                     record(f"ok {job.pair.key}: {row['points']} points, {row['seconds']:.1f} s"
                            + (f", S {row['S']:.2f}" if "S" in row else ""))
+                    for warning in row.get("warnings", []):
+                        record(f"WARNING {job.pair.key}: {warning}")
                 progress.advance(f"{job.pair.key} {row['status']}")
     finally:
         runner.close()

@@ -159,7 +159,7 @@ def _process_pair(job: PairJob) -> dict:
     lap("grid (s)")
     row = {"status": "ok", "points": len(survey), "submerged_fraction": round(info["submerged_fraction"], 4),
            "water_level_m": survey.water_level, "survey": str(out / "survey.npz"), "dem": str(out / "dem.npz"),
-           "stage_seconds": seconds}
+           "stage_seconds": seconds, "warnings": info["warnings"]}
     if job.damage is not None and job.reference_dir is not None:
         if reference_dem is None:
             row["damage_waiting_for_reference"] = True

@@ -206,6 +206,8 @@ def _cmd_reconstruct(args) -> int:
           f"{summary['dropped_undetermined']} not determined (disparity std over 1 px), "
           f"{summary['dropped_photometric']} colours unlike their neighbours' matches")
     _print_sigma(summary)
+    for warning in summary["warnings"]:
+        print(f"  WARNING: {warning}")
     for stage, seconds in summary["seconds"].items():
         print(f"  {stage:<27} {seconds:.2f}")
     print(f"survey: {output}\npreview: {preview}\nsummary: {summary_path}" + (f"\nply: {args.ply}" if args.ply else ""))

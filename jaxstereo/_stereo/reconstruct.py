@@ -276,8 +276,10 @@ def reconstruct(
       when the rig has none. A tilted interface comes from the rig.
     - `options`: `ReconstructOptions`.
 
-    **Returns:** `(survey, summary)`; the summary holds point counts (and how many were dropped and why),
-    the submerged fraction, the exact curves' row offsets from the rectified rows, and seconds per stage.
+    **Returns:** `(survey, summary)`; the summary holds point counts (and how many were dropped and why,
+    those above the height range apart), the submerged fraction, the height range used (`height_range_m`),
+    the exact curves' row offsets from the rectified rows, seconds per stage, and `warnings` (sentences; a
+    scene that rises past the height range's top).
     """
     timings = {}
     t0 = time.perf_counter()
@@ -326,6 +328,7 @@ def reconstruct(
         "water_level_m": survey.water_level,
         "rectification": mode,
         "disparity_search_px": [search[0], search[0] + search[1]],
+        "height_range_m": [float(z_range[0]), float(z_range[1])],
         **kept.counts,
         "dropped_undetermined": undetermined,
         "dropped_photometric": photometric,
@@ -335,7 +338,23 @@ def reconstruct(
         **(_uncertainty_summary(survey, shared, subpixel.sigma[kept.v, kept.u]) if shared is not None else {}),
         "seconds": timings,
     }
+    summary["warnings"] = _range_warnings(summary)
     return survey, summary
+
+
+ABOVE_RANGE_SHARE = 1e-3  # a scene inside its height range leaves no match above it (the POV-Ray flume: none)
+
+
+def _range_warnings(summary: dict) -> list[str]:
+    """What the user should know about the height range: matches landing above its top mean the scene rises
+    past it, and the pixels higher still were matched within the search or not at all."""
+    above, matches = summary["dropped_above_height_range"], summary["matches"]
+    if above <= ABOVE_RANGE_SHARE * matches:
+        return []
+    top = summary["height_range_m"][1]
+    return [f"{above} matches ({100 * above / matches:.1f} %) lie above the height range's top, z = {top:.3f} m: "
+            f"the scene rises higher, and what lies above the search is missing or mismatched; widen the height "
+            f"range (--z-range ZMIN ZMAX; z_range in a batch manifest)"]
 
 
 def _drop_undetermined(subpixel: Subpixel, limit_px: float) -> tuple[np.ndarray, int]:
@@ -389,7 +408,9 @@ def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offse
     if keep.size == 0:
         raise JaxStereoError("no matches survived: the images share no matchable texture in the expected depth range")
     counts = {"matches": int(rl.shape[0]), "dropped_rays_apart": int(np.sum(finite & ~meets)),
-              "dropped_outside_height_range": int(np.sum(meets & ~inside)), "dropped_invalid_rays": int(np.sum(~finite))}
+              "dropped_outside_height_range": int(np.sum(meets & ~inside)),
+              "dropped_above_height_range": int(np.sum(meets & (points[:, 2] > z_range[1]))),
+              "dropped_invalid_rays": int(np.sum(~finite))}
     return _Kept(v[keep], u[keep], points[keep], submerged[keep].astype(bool), counts, float(np.median(gap_px[keep])),
                  dpoint_dd[keep])
 

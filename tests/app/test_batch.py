@@ -167,3 +167,17 @@ def test_folder_of_pairs_named_by_convention(campaign, tmp_path, capsys):
     assert main(["batch", str(root / "campaign.toml"), "--rig", str(root / "rig.json"), "-o", str(tmp_path / "o4")]) == 2
     assert "only for a folder of pairs" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in ("o2", "o3", "o4"))
+
+
+def test_a_pair_whose_scene_rises_past_the_height_range_is_warned_about(campaign, tmp_path, capsys):
+    root, _, _ = campaign
+    text = (root / "campaign.toml").read_text().replace("z_range = [-0.05, 0.45]", "z_range = [-0.05, 0.2]")
+    head, _, rest = text.partition("[damage]")  # stage I alone, no damage
+    manifest = root / "low_range.toml"
+    manifest.write_text(head + '[[pair]]\ntest = "T01"\nstage = "I"\nleft = "pairs/T01_I_L.png"\n'
+                        'right = "pairs/T01_I_R.png"\n')
+    out = tmp_path / "out"
+    assert main(["batch", str(manifest), "-o", str(out)]) == 0  # the crest at 0.31 m: the survey goes on, truncated
+    printed = capsys.readouterr().out
+    assert "WARNING T01/I: " in printed and "above the height range's top, z = 0.200 m" in printed
+    assert "WARNING T01/I: " in (out / "batch.log").read_text()

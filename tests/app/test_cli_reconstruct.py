@@ -46,6 +46,18 @@ def test_reconstruct_command_writes_survey_ply_preview_summary(pair, tmp_path, c
     assert (tmp_path / "out" / "survey_preview.png").read_bytes()[:4] == b"\x89PNG"
     summary = json.loads((tmp_path / "out" / "survey_summary.json").read_text())
     assert summary["points"] == len(survey)
+    assert summary["warnings"] == [] and "WARNING" not in out
+
+
+def test_reconstruct_command_warns_when_the_scene_rises_past_the_height_range(pair, tmp_path, capsys):
+    root, _ = pair
+    assert _run(root, tmp_path, "--water-level", "0.18", "--z-range", "-0.05", "0.2") == 0  # the board rises to 0.31 m
+    out = capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "survey_summary.json").read_text())
+    assert summary["dropped_above_height_range"] > 0.02 * summary["matches"]
+    assert f"WARNING: {summary['dropped_above_height_range']} matches" in out
+    assert "above the height range's top, z = 0.200 m" in out and "--z-range" in out
+    assert load_survey(tmp_path / "out" / "survey.npz").points[:, 2].max() <= 0.2
 
 
 def _error(capsys, code, text, tmp_path):

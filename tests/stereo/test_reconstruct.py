@@ -114,6 +114,24 @@ def test_breakwater_wet_and_dry_surveys_agree():
     assert np.nanmedian(err) <= 3e-3
 
 
+def test_a_scene_rising_past_the_height_range_is_reported(board):
+    _, rig, views = board
+    options = ReconstructOptions(z_range_m=(-0.05, 0.25))
+    survey, summary = reconstruct(views[0].image, views[1].image, rig, 0.18, options)
+    assert survey.points[:, 2].max() <= 0.25
+    # The board rises to 0.31 m: its top fifth lies above the range. Its matches either land in the search's
+    # margin (triangulated above 0.25 m, dropped and counted) or are lost.
+    above = summary["dropped_above_height_range"]
+    assert above > 0.02 * summary["matches"], above
+    assert summary["height_range_m"] == [-0.05, 0.25]
+    assert len(summary["warnings"]) == 1
+    assert f"{above} matches" in summary["warnings"][0]
+    assert "above the height range's top, z = 0.250 m" in summary["warnings"][0]
+    # The whole board inside the range: no match above it, no warning.
+    _, summary = reconstruct(views[0].image, views[1].image, rig, 0.18, ReconstructOptions(z_range_m=(-0.05, 0.4)))
+    assert summary["dropped_above_height_range"] == 0 and summary["warnings"] == []
+
+
 def test_reconstruct_bad_input(board):
     spec, rig, views = board
     left, right = views[0].image, views[1].image
