@@ -71,9 +71,15 @@ class StretchDamage:
             "damage_level": self.level,
             "profiles": [{"y_m": y, "A_e_m2": p.A_e, "L_e_m": p.L_e, "d_e_m": p.d_e, "S": p.S, "E2D": p.E2D,
                           "damage_level": damage_level(p.S, self.cot), "erosion_zones": len(p.erosion),
-                          "accretion_zones": len(p.accretion)} for y, p in self.profiles],
+                          "accretion_zones": len(p.accretion), "erosion": [_zone_dict(z) for z in p.erosion]}
+                         for y, p in self.profiles],
             "profiles_not_computed": [{"y_m": y, "reason": why} for y, why in self.skipped],
         }
+
+
+def _zone_dict(zone) -> dict:
+    """One erosion zone for the report: its ends along the slope (m, `slope_abscissa`'s), area and depth."""
+    return {"start_m": zone.start, "end_m": zone.end, "A_e_m2": zone.area, "d_e_m": zone.depth}
 
 
 def fit_design_slope(x: np.ndarray, z: np.ndarray, cot: float, swl: float, dn50: float) -> tuple[tuple[float, float], float]:

@@ -1,3 +1,4 @@
+import itertools
 import json
 
 import numpy as np
@@ -52,6 +53,16 @@ def test_grid_and_damage_commands(surveys, tmp_path, capsys):
     # E3D: the cone's depth averaged over the Dn50 circle at its axis, 0.03 (1 - (2/3) 0.018 / 0.06), over Dn50.
     assert abs(report["E3D"] - 0.03 * (1 - 2 / 3 * 0.018 / 0.06) / 0.036) < 0.03 * report["E3D"]
     assert report["S_max"] > report["averaged_profile"]["S"] > 0
+    for profile in report["profiles"]:  # each profile's zones, the largest giving its A_e and d_e
+        zones = profile["erosion"]
+        assert len(zones) == profile["erosion_zones"]
+        assert all(z["start_m"] < z["end_m"] and z["A_e_m2"] > 0 for z in zones)
+        assert all(a["end_m"] <= b["start_m"] for a, b in itertools.pairwise(zones))
+        if zones:
+            largest = max(zones, key=lambda z: z["A_e_m2"])
+            assert (largest["A_e_m2"], largest["d_e_m"]) == (profile["A_e_m2"], profile["d_e_m"])
+            assert largest["end_m"] - largest["start_m"] == pytest.approx(profile["L_e_m"], abs=1e-12)
+    assert max(p["A_e_m2"] for p in report["profiles"]) > 0
     for name in ("profiles.csv", "profile.png", "difference.png"):
         assert (tmp_path / "report" / name).stat().st_size > 0
 
