@@ -172,7 +172,7 @@ def test_folder_of_pairs_named_by_convention(campaign, tmp_path, capsys):
 def test_a_pair_whose_scene_rises_past_the_height_range_is_warned_about(campaign, tmp_path, capsys):
     root, _, _ = campaign
     text = (root / "campaign.toml").read_text().replace("z_range = [-0.05, 0.45]", "z_range = [-0.05, 0.2]")
-    head, _, rest = text.partition("[damage]")  # stage I alone, no damage
+    head, _, _ = text.partition("[damage]")  # stage I alone, no damage
     manifest = root / "low_range.toml"
     manifest.write_text(head + '[[pair]]\ntest = "T01"\nstage = "I"\nleft = "pairs/T01_I_L.png"\n'
                         'right = "pairs/T01_I_R.png"\n')

