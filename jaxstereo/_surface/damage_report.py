@@ -62,19 +62,23 @@ class StretchDamage:
             "design_slope_origin_xz_m": list(self.origin),
             "stretch_y_m": list(self.stretch), "whole_surveyed_width": self.whole_width,
             "active_zone_z_m": list(self.active_zone),
-            "averaged_profile": {"A_e_m2": self.averaged.A_e, "L_e_m": self.averaged.L_e, "d_e_m": self.averaged.d_e,
-                                 "S": self.averaged.S, "E2D": self.averaged.E2D},
+            "averaged_profile": profile_figures(self.averaged),
             "S_mean_above_threshold": self.S_mean, "S_threshold": self.threshold, "S_max": self.S_max,
             "L_e_max_m": self.L_e_max, "d_e_max_m": self.d_e_max,
             "eroded_volume_m3": self.volumes.eroded_m3, "accreted_volume_m3": self.volumes.accreted_m3,
             "E3D": self.volumes.E3D, "E3D_at_xy_m": list(self.volumes.E3D_xy) if self.volumes.E3D_xy else None,
             "damage_level": self.level,
-            "profiles": [{"y_m": y, "A_e_m2": p.A_e, "L_e_m": p.L_e, "d_e_m": p.d_e, "S": p.S, "E2D": p.E2D,
+            "profiles": [{"y_m": y, **profile_figures(p),
                           "damage_level": damage_level(p.S, self.cot), "erosion_zones": len(p.erosion),
                           "accretion_zones": len(p.accretion), "erosion": [_zone_dict(z) for z in p.erosion]}
                          for y, p in self.profiles],
             "profiles_not_computed": [{"y_m": y, "reason": why} for y, why in self.skipped],
         }
+
+
+def profile_figures(p) -> dict:
+    """A `ProfileDamage`'s figures by their report names: `A_e_m2`, `L_e_m`, `d_e_m` (metres), `S`, `E2D`."""
+    return {"A_e_m2": p.A_e, "L_e_m": p.L_e, "d_e_m": p.d_e, "S": p.S, "E2D": p.E2D}
 
 
 def _zone_dict(zone) -> dict:
@@ -302,7 +306,7 @@ def _profiles_csv(result: StretchDamage, sigma=None) -> str:
         if p is None:
             writer.writerow([f"{y:.4f}", *[""] * (2 * len(_CSV_FIGURES)), "not computed", why])
             continue
-        values = {"A_e_m2": p.A_e, "L_e_m": p.L_e, "d_e_m": p.d_e, "S": p.S, "E2D": p.E2D}
+        values = profile_figures(p)
         sigmas = sigma.profile_sigma.get(round(y, 6)) if sigma is not None else None
         cells = []
         for key, _, fmt in _CSV_FIGURES:

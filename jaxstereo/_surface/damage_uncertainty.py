@@ -33,7 +33,7 @@ import numpy as np
 from scipy import ndimage
 
 from .._geometry.errors import JaxStereoError
-from .damage_report import StretchDamage
+from .damage_report import StretchDamage, profile_figures
 from .grid import DEM
 
 DRAWS = 48
@@ -101,11 +101,9 @@ def hollow_depth(dem: DEM) -> np.ndarray:
 
 def _figures(result: StretchDamage) -> tuple[dict, dict]:
     d = result.to_dict()
-    averaged = d["averaged_profile"]
-    values = {key: averaged[key] for key in ("A_e_m2", "L_e_m", "d_e_m", "S", "E2D")}
+    values = profile_figures(result.averaged)
     values.update({key: d[key] for key in FIGURES if key not in values})
-    per_profile = {round(y, 6): {"A_e_m2": p.A_e, "L_e_m": p.L_e, "d_e_m": p.d_e, "S": p.S, "E2D": p.E2D}
-                   for y, p in result.profiles}
+    per_profile = {round(y, 6): profile_figures(p) for y, p in result.profiles}
     return values, per_profile
 
 
