@@ -26,8 +26,8 @@ from .manifest import Manifest, load_manifest
 from .progress import Progress, format_seconds
 
 CSV_COLUMNS = ("test", "stage", "reference", "status", "seconds", "points", "submerged_fraction", "water_level_m",
-               "A_e_m2", "L_e_m", "d_e_m", "S", "S_sigma", "S_max", "E2D", "E3D", "eroded_volume_m3", "accreted_volume_m3",
-               "damage_level", "stretch_y_m", "active_zone_z_m", "error", "survey", "dem")
+               "A_e_m2", "L_e_m", "d_e_m", "S", "S_sigma", "S_low", "S_high", "S_max", "E2D", "E3D", "eroded_volume_m3",
+               "accreted_volume_m3", "damage_level", "stretch_y_m", "active_zone_z_m", "error", "survey", "dem")
 
 
 @dataclasses.dataclass(frozen=True)

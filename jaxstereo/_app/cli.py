@@ -283,9 +283,11 @@ def _cmd_damage(args) -> int:
     a = result.averaged
 
     def pm(value: float, key: str, scale: float = 1.0, digits: int = 2) -> str:
-        """value +- sigma (sigma when known), both times `scale`."""
+        """value +- sigma [low, high] (sigma and the 95 % interval when known), all times `scale`."""
         s = sigma.sigma.get(key) if sigma is not None else None
-        return f"{value * scale:.{digits}f}" + ("" if s is None else f" +- {s * scale:.{digits}f}")
+        bounds = sigma.interval(key, value) if sigma is not None else None
+        return (f"{value * scale:.{digits}f}" + ("" if s is None else f" +- {s * scale:.{digits}f}")
+                + ("" if bounds is None else f" [{bounds[0] * scale:.{digits}f}, {bounds[1] * scale:.{digits}f}]"))
 
     width = "whole surveyed width" if result.whole_width else "tested stretch"
     print(f"damage: Dn50 {args.dn50:g} m, slope 1:{cot:g}, SWL {args.swl:g} m, {len(result.profiles)} profiles")
@@ -306,7 +308,8 @@ def _cmd_damage(args) -> int:
     else:
         print(f"  error bars         from {sigma.draws} draws of the surveys' errors; calibration "
               f"{'common to' if sigma.shared_calibration else 'independent in'} both, water level "
-              f"{'common to' if sigma.shared_level else 'independent in'} both")
+              f"{'common to' if sigma.shared_level else 'independent in'} both; [low, high] the 95 % interval (the "
+              "wider of +- 2 sigma and the middle 95 % of the draws)")
     for y, why in result.skipped:
         print(f"  profile y {y:+.3f} m not computed: {why}")
     print("report: " + ", ".join(str(p) for p in paths))

@@ -270,19 +270,23 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir:
     `difference.png` (DEM difference map) to `out_dir`, each atomically. With `sigma` (a `DamageSigma`), every
     figure's standard deviation goes beside it (`"sigma"` in the JSON, for the stretch and for each profile, with
     `S_sigma` per profile; a `*_sigma` column beside each profile's figure in the CSV; value +- sigma and 2-sigma
-    bands on the figure). Returns the paths."""
+    bands on the figure), and its 95 % interval (`DamageSigma.interval`: `"interval_95"` in the JSON, `*_low` and
+    `*_high` columns in the CSV, on the figure's title for S). Returns the paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     report = result.to_dict()
     if sigma is not None:
         report["sigma"] = sigma.sigma
+        report["interval_95"] = sigma.stretch_intervals(report)
         report["sigma_from"] = {"draws": sigma.draws, "failed_draws": sigma.failed,
                                 "calibration_shared_by_both_surveys": sigma.shared_calibration,
-                                "water_level_shared_by_both_surveys": sigma.shared_level}
+                                "water_level_shared_by_both_surveys": sigma.shared_level,
+                                "interval_95": "the wider of value +- 2 sigma and the middle 95 % of the draws"}
         for row in report["profiles"]:
             figures = sigma.profile_sigma.get(round(row["y_m"], 6))
             row["S_sigma"] = None if figures is None else figures["S"]
             row["sigma"] = figures
+            row["interval_95"] = sigma.intervals({key: row[key] for key in (figures or {})}, row["y_m"]) or None
     write_text_atomic(out / "damage.json", json.dumps(report, indent=2) + "\n")
     write_text_atomic(out / "profiles.csv", _profiles_csv(result, sigma))
     _plot_averaged_profile(result, before, after, out / "profile.png", sigma)
@@ -290,27 +294,30 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir:
     return [out / name for name in ("damage.json", "profiles.csv", "profile.png", "difference.png")]
 
 
-_CSV_FIGURES = (("A_e_m2", "A_e_sigma_m2", "{:.6g}"), ("L_e_m", "L_e_sigma_m", "{:.5g}"),
-                ("d_e_m", "d_e_sigma_m", "{:.5g}"), ("S", "S_sigma", "{:.4g}"), ("E2D", "E2D_sigma", "{:.4g}"))
+_CSV_FIGURES = (("A_e_m2", "A_e_{}_m2", "{:.6g}"), ("L_e_m", "L_e_{}_m", "{:.5g}"), ("d_e_m", "d_e_{}_m", "{:.5g}"),
+                ("S", "S_{}", "{:.4g}"), ("E2D", "E2D_{}", "{:.4g}"))
 
 
 def _profiles_csv(result: StretchDamage, sigma=None) -> str:
-    """One row per profile (y order): its damage, each figure with its standard deviation when known (metres,
-    square metres), and its level; or why it was not computed."""
+    """One row per profile (y order): its damage, each figure with its standard deviation and the low and high
+    ends of its 95 % interval when known (metres, square metres), and its level; or why it was not computed."""
     buf = io.StringIO()
     writer = csv.writer(buf)
-    writer.writerow(["y_m", *(name for key, column, _ in _CSV_FIGURES for name in (key, column)), "damage_level",
-                     "note"])
+    writer.writerow(["y_m", *(name for key, column, _ in _CSV_FIGURES
+                              for name in (key, *(column.format(part) for part in ("sigma", "low", "high")))),
+                     "damage_level", "note"])
     rows = [(y, p, "") for y, p in result.profiles] + [(y, None, why) for y, why in result.skipped]
     for y, p, why in sorted(rows, key=lambda r: r[0]):
         if p is None:
-            writer.writerow([f"{y:.4f}", *[""] * (2 * len(_CSV_FIGURES)), "not computed", why])
+            writer.writerow([f"{y:.4f}", *[""] * (4 * len(_CSV_FIGURES)), "not computed", why])
             continue
         values = profile_figures(p)
         sigmas = sigma.profile_sigma.get(round(y, 6)) if sigma is not None else None
         cells = []
         for key, _, fmt in _CSV_FIGURES:
-            cells += [fmt.format(values[key]), "" if sigmas is None else f"{sigmas[key]:.3g}"]
+            bounds = sigma.interval(key, values[key], y) if sigma is not None else None
+            cells += [fmt.format(values[key]), "" if sigmas is None else f"{sigmas[key]:.3g}",
+                      *(["", ""] if bounds is None else [f"{bound:.3g}" for bound in bounds])]
         writer.writerow([f"{y:.4f}", *cells, damage_level(p.S, result.cot), ""])
     return buf.getvalue()
 
@@ -360,7 +367,10 @@ def _plot_averaged_profile(result: StretchDamage, before: DEM, after: DEM, path:
     ax.set_xlabel("x (m)")
     ax.set_ylabel("z (m)")
     e3d = "not measurable" if result.volumes.E3D is None else f"{result.volumes.E3D:.2f}"
-    s_text = f"{result.averaged.S:.2f}" + (f" +- {sigma.sigma['S']:.2f}" if sigma is not None else "")
+    s_text = f"{result.averaged.S:.2f}"
+    bounds = sigma.interval("S", result.averaged.S) if sigma is not None else None
+    if bounds is not None:
+        s_text += f" +- {sigma.sigma['S']:.2f} (95 %: {bounds[0]:.2f} to {bounds[1]:.2f})"
     ax.set_title(f"y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m ({width}): S = {s_text} "
                  f"({result.level} on 1:{result.cot:g}), E2D = {result.averaged.E2D:.2f}, E3D = {e3d}", fontsize=9)
     ax.legend(fontsize=8, loc="upper left")

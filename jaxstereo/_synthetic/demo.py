@@ -172,6 +172,7 @@ def _damage(out: Path, stages, dems) -> dict:
         summary[name] = result.to_dict()
         summary[name].pop("profiles")
         summary[name]["sigma"] = sigma.sigma if sigma is not None else None
+        summary[name]["interval_95"] = sigma.stretch_intervals(summary[name]) if sigma is not None else None
     return summary
 
 
@@ -228,12 +229,15 @@ def _report_markdown(s: dict) -> str:
               + " m (6 Dn50 below to 4 Dn50 above the SWL along the slope); surfaces as a Dn50/4 ball foot sees them. "
               "S is the characteristic S of the stretch (its averaged profile), and the level is that S's on the 1:2 "
               "slope; S max is the worst single profile (every Dn50 across). sigma is S's standard deviation from the surveys' "
-              "own error bars (matching, calibration, water level), sampled through the whole damage computation.", "",
-              "| stage | A_e (m2) | L_e (m) | d_e (m) | S +- sigma | S max | E2D | E3D | eroded (cm3) | level |",
+              "own error bars (matching, calibration, water level), sampled through the whole damage computation; "
+              "the 95 % interval is the wider of +- 2 sigma and the middle 95 % of those draws.", "",
+              "| stage | A_e (m2) | L_e (m) | d_e (m) | S +- sigma [95 %] | S max | E2D | E3D | eroded (cm3) | level |",
               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for name, d in s["damage"].items():
         a = d["averaged_profile"]
         s_sigma = f" +- {d['sigma']['S']:.2f}" if d.get("sigma") else ""
+        if d.get("interval_95") and "S" in d["interval_95"]:
+            s_sigma += " [{:.2f}, {:.2f}]".format(*d["interval_95"]["S"])
         lines.append(f"| {name} | {a['A_e_m2']:.5f} | {a['L_e_m']:.3f} | {a['d_e_m']:.4f} | {a['S']:.2f}{s_sigma} | "
                      f"{d['S_max']:.2f} | {a['E2D']:.2f} | {'n/m' if d['E3D'] is None else format(d['E3D'], '.2f')} | "
                      f"{1e6 * d['eroded_volume_m3']:.0f} | {d['damage_level']} |")

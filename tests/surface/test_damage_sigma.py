@@ -93,6 +93,42 @@ def test_matching_noise_gives_a_sigma_that_grows_with_it():
     assert profile_sigmas[0][1] > 0.0005 / 2
 
 
+def _two_pits(band_m=None, noise=0.001):
+    """The slope of `_slope` with two 20 mm pits (x 0.22-0.28 and 0.30-0.40 m) and, between them, a 20 mm band read
+    `band_m` low (an unmoved rock the two surveys read differently); independent matching noise `noise` per cell."""
+    x = np.arange(0.0, 0.8, 0.005)
+    y = np.arange(-0.1, 0.1, 0.005)
+    drop = np.zeros_like(x) if band_m is None else (0.02 * ((x > 0.22) & (x < 0.28)) + 0.02 * ((x > 0.30) & (x < 0.40))
+                                                    + band_m * ((x >= 0.28) & (x <= 0.30)))
+    z = x / COT - drop[None, :] * (np.abs(y) < 0.06)[:, None]
+    layers = {"sigma_match": noise, "sigma_calibration": 0.0, "sigma_level": 0.0}
+    return DEM(x, y, z, 0.005, **{key: np.full(z.shape, value) for key, value in layers.items()})
+
+
+def test_a_zone_the_errors_may_split_gets_an_interval_that_holds_the_split_reading():
+    """Two pits joined by a band read 3 mm low: the measured zone runs over both (0.18 m of x, 0.201 m along the
+    slope), but 1 mm of noise per cell lifts the band to zero in some draws (6 of 48), which then read the larger
+    pit alone (0.112 m). The standard deviation, shrunk by the draws that do not split, leaves that reading out
+    at 2 sigma; the 95 % interval, the wider of +- 2 sigma and the middle 95 % of the draws, holds it. With the band
+    read 6 mm low no draw splits, and the interval does not reach the split reading."""
+    along = np.hypot(COT, 1.0) / COT  # metres along the slope per metre of x
+    merged, split = 0.18 * along, 0.10 * along
+    for band, splits in ((0.003, True), (0.006, False)):
+        before, after = _two_pits(), _two_pits(band)
+        y, p = min(_compute(before, after).profiles, key=lambda t: abs(t[0]))
+        assert p.L_e == pytest.approx(merged, abs=0.006)  # the measured zone runs over both pits
+        result = damage_sigma(before, after, _compute, True, True)
+        low, high = result.interval("L_e_m", p.L_e, y)
+        sigma = result.profile_sigma[round(y, 6)]["L_e_m"]
+        assert low <= p.L_e - 2 * sigma and high >= p.L_e + 2 * sigma and low >= 0
+        if splits:
+            assert p.L_e - 2 * sigma > split + 0.02  # measured 0.141 against 0.112
+            assert low <= split + 0.005  # measured 0.113
+        else:
+            assert low > split + 0.05  # measured 0.183
+    assert result.interval("L_e_m", None, y) is None and result.interval("L_e_m", p.L_e, 1.0) is None
+
+
 def test_surfaces_without_sigma_layers_are_refused_with_a_clear_error():
     with pytest.raises(JaxStereoError, match="no sigma layers"):
         damage_sigma(_slope(), _slope(0.03), _compute, True, True)

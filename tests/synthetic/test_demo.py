@@ -15,6 +15,9 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     s2 = summary["damage"]["II"]["averaged_profile"]["S"]
     s3 = summary["damage"]["III"]["averaged_profile"]["S"]
     assert 0 < s2 < s3
+    sigma, (low, high) = summary["damage"]["III"]["sigma"]["S"], summary["damage"]["III"]["interval_95"]["S"]
+    assert 0 <= low <= s3 - 2 * sigma + 1e-12 and high >= s3 + 2 * sigma - 1e-12  # the 95 % interval holds +- 2 sigma
+    assert f"[{low:.2f}, {high:.2f}]" in (tmp_path / "demo" / "report.md").read_text()
     for name in ("report.md", "calibration_errors.png", "damage_vs_stage.png", "damage_stageIII/profile.png",
                  "surveys/stageIII.npz", "rig_wet.json"):
         assert (tmp_path / "demo" / name).stat().st_size > 0
