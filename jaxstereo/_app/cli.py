@@ -296,7 +296,8 @@ def _cmd_damage(args) -> int:
     print(f"  averaged profile   A_e {pm(a.A_e, 'A_e_m2', 1e4)} cm2  L_e {pm(a.L_e, 'L_e_m', 1e3, 0)} mm  "
           f"d_e {pm(a.d_e, 'd_e_m', 1e3, 1)} mm  S {pm(a.S, 'S')}  E2D {pm(a.E2D, 'E2D')}")
     print(f"  over the stretch   S mean {pm(result.S_mean, 'S_mean_above_threshold')} (S > {result.threshold:g})  "
-          f"S max {pm(result.S_max, 'S_max')}  L_e max {pm(result.L_e_max, 'L_e_max_m', 1e3, 0)} mm  "
+          f"S max {pm(result.S_max, 'S_max')} (y {result.S_max_y:+.3f} m)  "
+          f"L_e max {pm(result.L_e_max, 'L_e_max_m', 1e3, 0)} mm  "
           f"d_e max {pm(result.d_e_max, 'd_e_max_m', 1e3, 1)} mm")
     e3d = "not measurable (no Dn50 circle covered by both surveys)" if result.volumes.E3D is None else \
         pm(result.volumes.E3D, "E3D")

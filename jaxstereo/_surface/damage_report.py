@@ -31,11 +31,11 @@ class StretchDamage:
     **Fields:** `profiles` (y (m), ProfileDamage) per cross-shore section inside the stretch; `skipped`
     (y (m), reason) for the sections that could not be computed; `averaged` the damage of the profile
     averaged over the stretch's width (the stretch's characteristic S); `S_mean` mean of per-profile S
-    above `threshold`; `S_max`, `L_e_max`, `d_e_max` over the profiles; `volumes` (DemDamage, E3D None
-    when not measurable); `level` the damage level of the characteristic S on this slope; `stretch`
-    (y0, y1) metres and `whole_width` (True when no stretch was given: the whole surveyed width);
-    `active_zone` (z_low, z_high) metres: the heights on the design slope between which erosion is
-    counted; the design slope (`cot`, `origin`), `dn50`, `swl`.
+    above `threshold`; `S_max`, `L_e_max`, `d_e_max` over the profiles (`S_max_y` where S is largest);
+    `volumes` (DemDamage, E3D None when not measurable); `level` the damage level of the characteristic S on
+    this slope; `stretch` (y0, y1) metres and `whole_width` (True when no stretch was given: the whole
+    surveyed width); `active_zone` (z_low, z_high) metres: the heights on the design slope between which
+    erosion is counted; the design slope (`cot`, `origin`), `dn50`, `swl`.
     """
 
     profiles: list[tuple[float, ProfileDamage]]
@@ -56,6 +56,11 @@ class StretchDamage:
     whole_width: bool
     active_zone: tuple[float, float]
 
+    @property
+    def S_max_y(self) -> float:
+        """The y (m) of the profile with the largest S (the first such profile on a tie)."""
+        return max(self.profiles, key=lambda item: item[1].S)[0]
+
     def to_dict(self) -> dict:
         return {
             "dn50_m": self.dn50, "slope_cot": self.cot, "swl_m": self.swl,
@@ -64,6 +69,7 @@ class StretchDamage:
             "active_zone_z_m": list(self.active_zone),
             "averaged_profile": profile_figures(self.averaged),
             "S_mean_above_threshold": self.S_mean, "S_threshold": self.threshold, "S_max": self.S_max,
+            "S_max_at_y_m": self.S_max_y,
             "L_e_max_m": self.L_e_max, "d_e_max_m": self.d_e_max,
             "eroded_volume_m3": self.volumes.eroded_m3, "accreted_volume_m3": self.volumes.accreted_m3,
             "E3D": self.volumes.E3D, "E3D_at_xy_m": list(self.volumes.E3D_xy) if self.volumes.E3D_xy else None,

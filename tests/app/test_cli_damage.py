@@ -53,6 +53,9 @@ def test_grid_and_damage_commands(surveys, tmp_path, capsys):
     # E3D: the cone's depth averaged over the Dn50 circle at its axis, 0.03 (1 - (2/3) 0.018 / 0.06), over Dn50.
     assert abs(report["E3D"] - 0.03 * (1 - 2 / 3 * 0.018 / 0.06) / 0.036) < 0.03 * report["E3D"]
     assert report["S_max"] > report["averaged_profile"]["S"] > 0
+    worst = next(p for p in report["profiles"] if p["y_m"] == report["S_max_at_y_m"])
+    assert worst["S"] == report["S_max"] and abs(worst["y_m"]) < 0.06  # a profile through the pit
+    assert f"(y {report['S_max_at_y_m']:+.3f} m)" in out
     for profile in report["profiles"]:  # each profile's zones, the largest giving its A_e and d_e
         zones = profile["erosion"]
         assert len(zones) == profile["erosion_zones"]
