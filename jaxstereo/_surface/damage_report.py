@@ -377,8 +377,8 @@ def _plot_averaged_profile(result: StretchDamage, before: DEM, after: DEM, path:
     bounds = sigma.interval("S", result.averaged.S) if sigma is not None else None
     if bounds is not None:
         s_text += f" +- {sigma.sigma['S']:.2f} (95 %: {bounds[0]:.2f} to {bounds[1]:.2f})"
-    ax.set_title(f"y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m ({width}): S = {s_text} "
-                 f"({result.level} on 1:{result.cot:g}), E2D = {result.averaged.E2D:.2f}, E3D = {e3d}", fontsize=9)
+    ax.set_title(f"y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m ({width}): S = {s_text}\n"
+                 f"{result.level} on 1:{result.cot:g}, E2D = {result.averaged.E2D:.2f}, E3D = {e3d}", fontsize=9)
     ax.legend(fontsize=8, loc="upper left")
     ax.grid(alpha=0.3)
     save_figure(fig, path)
