@@ -268,6 +268,8 @@ def _cmd_damage(args) -> int:
 
     if not (args.dn50 > 0):
         raise JaxStereoError(f"--dn50 must be positive (metres), got {args.dn50}")
+    if args.seen_tolerance is not None and not args.seen_tolerance >= 0:
+        raise JaxStereoError(f"--seen-tolerance must be 0 or more (metres, or inf), got {args.seen_tolerance}")
     cot = parse_slope(args.slope)
     spacing = args.spacing
     before = load_surface(args.before, spacing, max_gap_m=args.max_gap)
@@ -278,7 +280,8 @@ def _cmd_damage(args) -> int:
     result, sigma = stretch_damage_with_sigma(
         before, after, args.dn50, cot, args.swl, origin, args.profile_spacing,
         stretch=tuple(args.stretch) if args.stretch else None,
-        active_zone_dn50=tuple(args.active_zone) if args.active_zone else ACTIVE_ZONE_DN50)
+        active_zone_dn50=tuple(args.active_zone) if args.active_zone else ACTIVE_ZONE_DN50,
+        seen_tolerance_m=args.seen_tolerance)
     paths = write_damage_report(result, before, after, args.output, sigma)
     a = result.averaged
 
@@ -293,6 +296,9 @@ def _cmd_damage(args) -> int:
     print(f"damage: Dn50 {args.dn50:g} m, slope 1:{cot:g}, SWL {args.swl:g} m, {len(result.profiles)} profiles")
     print(f"  {width:<18} y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m")
     print(f"  active zone        z {result.active_zone[0]:.3f} to {result.active_zone[1]:.3f} m on the design slope")
+    if np.isfinite(result.seen_tolerance):
+        print(f"  seen by both       {100 * result.carried:.1f} % of the cells, seen only in part or filled in one "
+              "survey, take the change of the cells around them that both saw wholly")
     print(f"  averaged profile   A_e {pm(a.A_e, 'A_e_m2', 1e4)} cm2  L_e {pm(a.L_e, 'L_e_m', 1e3, 0)} mm  "
           f"d_e {pm(a.d_e, 'd_e_m', 1e3, 1)} mm  S {pm(a.S, 'S')}  E2D {pm(a.E2D, 'E2D')}")
     print(f"  over the stretch   S mean {pm(result.S_mean, 'S_mean_above_threshold')} (S > {result.threshold:g})  "

@@ -189,6 +189,10 @@ def _add_damage(sub) -> None:
     p.add_argument("--active-zone", type=float, nargs=2, metavar=("BELOW", "ABOVE"), default=None,
                    help="count erosion from BELOW Dn50 under the SWL to ABOVE Dn50 over it, along the slope "
                         "(default 6 4)")
+    p.add_argument("--seen-tolerance", type=float, default=None, metavar="M",
+                   help="a cell whose coverage std exceeds M metres in either survey (seen only in part, or filled) "
+                        "takes the change of the cells around it that both surveys saw wholly (default 0: every "
+                        "such cell; inf: compare every cell as surveyed)")
     p.add_argument("--spacing", type=float, default=0.005, help="grid spacing for surveys, m (default 0.005)")
     p.add_argument("--max-gap", type=float, default=0.01, help="fill holes up to this size, m (default 0.01)")
     p.add_argument("--profile-spacing", type=float, help="distance between profiles, m (default Dn50)")

@@ -17,6 +17,7 @@ from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike, Vector2
 from .damage import DemDamage, ProfileDamage, damage_level, dem_damage, profile_damage, slope_abscissa, to_slope_frame
 from .grid import DEM
+from .seen_change import SEEN_TOLERANCE_M, change_where_seen
 
 if TYPE_CHECKING:
     from .damage_uncertainty import DamageSigma
@@ -35,7 +36,9 @@ class StretchDamage:
     `volumes` (DemDamage, E3D None when not measurable); `level` the damage level of the characteristic S on
     this slope; `stretch` (y0, y1) metres and `whole_width` (True when no stretch was given: the whole
     surveyed width); `active_zone` (z_low, z_high) metres: the heights on the design slope between which
-    erosion is counted; the design slope (`cot`, `origin`), `dn50`, `swl`.
+    erosion is counted; the design slope (`cot`, `origin`), `dn50`, `swl`; `seen_tolerance` (m) and `carried`:
+    the share of the compared cells (0-1) where one survey did not see the surface wholly and the change was
+    carried from the cells around it that both saw (see `seen_change.py`).
     """
 
     profiles: list[tuple[float, ProfileDamage]]
@@ -55,6 +58,8 @@ class StretchDamage:
     stretch: tuple[float, float]
     whole_width: bool
     active_zone: tuple[float, float]
+    seen_tolerance: float = float("inf")
+    carried: float = 0.0
 
     @property
     def S_max_y(self) -> float:
@@ -67,6 +72,9 @@ class StretchDamage:
             "design_slope_origin_xz_m": list(self.origin),
             "stretch_y_m": list(self.stretch), "whole_surveyed_width": self.whole_width,
             "active_zone_z_m": list(self.active_zone),
+            "change_carried_from_seen_cells": {
+                "share_of_cells": self.carried,
+                "coverage_tolerance_m": self.seen_tolerance if np.isfinite(self.seen_tolerance) else None},
             "averaged_profile": profile_figures(self.averaged),
             "S_mean_above_threshold": self.S_mean, "S_threshold": self.threshold, "S_max": self.S_max,
             "S_max_at_y_m": self.S_max_y,
@@ -212,7 +220,7 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
                    profile_spacing_m: float | None = None, threshold: float = 0.5,
                    stretch: tuple[float, float] | None = None,
                    active_zone_dn50: tuple[float, float] = ACTIVE_ZONE_DN50,
-                   foot_radius_m: float | None = None) -> StretchDamage:
+                   foot_radius_m: float | None = None, seen_tolerance_m: float | None = None) -> StretchDamage:
     """Damage of a tested stretch between two DEMs on one grid (x cross-shore, y along the breakwater).
 
     **Arguments:** the DEMs; `dn50` (m); `cot` the design slope's cotangent; `swl` still water level (m);
@@ -221,7 +229,10 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
     `stretch` (y0, y1) the tested stretch (characterisation width), metres (None: the whole surveyed
     width); `active_zone_dn50` (below, above): erosion is counted from `below` Dn50 under the SWL to
     `above` Dn50 over it, along the design slope; `foot_radius_m` the radius of the profiler's foot the
-    surfaces are seen with (default Dn50 / 4; 0: the raw DEMs), see `profiler_foot`.
+    surfaces are seen with (default Dn50 / 4; 0: the raw DEMs), see `profiler_foot`; `seen_tolerance_m`: a
+    cell whose coverage std (`sigma_coverage`, metres) exceeds it in either survey takes the change of the cells
+    around it that both saw wholly (default 0: any cell not seen wholly; `math.inf`: every cell compared as
+    surveyed), see `seen_change.py`.
 
     The characteristic S is that of the profile averaged over the stretch (de Almeida, van Gent and
     Hofland 2019); its damage level uses the thresholds of this slope. A cross-section that cannot be
@@ -235,6 +246,8 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
     below, above = (float(v) for v in active_zone_dn50)
     if below < 0 or above < 0 or below + above <= 0:
         raise JaxStereoError(f"the active zone must extend below and/or above the SWL, got {active_zone_dn50} Dn50")
+    tolerance = SEEN_TOLERANCE_M if seen_tolerance_m is None else float(seen_tolerance_m)
+    after, carried = change_where_seen(before, after, tolerance, dn50)
     foot = dn50 / 4 if foot_radius_m is None else float(foot_radius_m)
     before, after = profiler_foot(before, foot), profiler_foot(after, foot)
     x_swl = slope_abscissa(swl, cot, origin)
@@ -267,7 +280,16 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
         L_e_max=max(p.L_e for _, p in profiles), d_e_max=max(p.d_e for _, p in profiles), volumes=volumes,
         level=damage_level(averaged.S, cot), cot=cot, origin=tuple(float(v) for v in origin), dn50=dn50, swl=swl,
         threshold=threshold, stretch=extent, whole_width=stretch is None, active_zone=zone_z,
+        seen_tolerance=tolerance, carried=_carried_share(carried, before, after, extent),
     )
+
+
+def _carried_share(carried: np.ndarray, before: DEM, after: DEM, extent: tuple[float, float]) -> float:
+    """The share (0-1) of the cells with data in both DEMs, inside the stretch `extent` (y0, y1), whose change
+    was carried from a seen cell."""
+    inside = ((before.y >= extent[0]) & (before.y <= extent[1]))[:, None]
+    compared = inside & np.isfinite(before.z) & np.isfinite(after.z)
+    return float((carried & compared).sum() / max(compared.sum(), 1))
 
 
 def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir: PathLike,
@@ -295,8 +317,9 @@ def write_damage_report(result: StretchDamage, before: DEM, after: DEM, out_dir:
             row["interval_95"] = sigma.intervals({key: row[key] for key in (figures or {})}, row["y_m"]) or None
     write_text_atomic(out / "damage.json", json.dumps(report, indent=2) + "\n")
     write_text_atomic(out / "profiles.csv", _profiles_csv(result, sigma))
-    _plot_averaged_profile(result, before, after, out / "profile.png", sigma)
-    _plot_difference(result, before, after, out / "difference.png")
+    compared, _ = change_where_seen(before, after, result.seen_tolerance, result.dn50)  # the after-surface used
+    _plot_averaged_profile(result, before, compared, out / "profile.png", sigma)
+    _plot_difference(result, before, compared, out / "difference.png")
     return [out / name for name in ("damage.json", "profiles.csv", "profile.png", "difference.png")]
 
 
@@ -401,7 +424,8 @@ def _plot_difference(result: StretchDamage, before: DEM, after: DEM, path: Path)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(f"DEM difference (mm): eroded {1e6 * result.volumes.eroded_m3:.0f} cm^3, "
-                 f"accreted {1e6 * result.volumes.accreted_m3:.0f} cm^3")
+                 f"accreted {1e6 * result.volumes.accreted_m3:.0f} cm^3\n{100 * result.carried:.0f} % of the cells "
+                 "take the change of the cells around them that both surveys saw wholly", fontsize=9)
     ax.legend(fontsize=8)
     fig.colorbar(im, ax=ax, label="after - before (mm)")
     save_figure(fig, path)

@@ -16,10 +16,12 @@ rather than linearised: each draw perturbs both DEMs with
   the window's footprint around it): one deviate common to both surveys, so that the rubble's own crevices
   cancel and an eroded hole, present in one survey only, does not. Without it the true S lay above the
   measured S at all 8 eroded stages of 4 synthetic trials, by 0.5-2.1 sigma (`experiments/uncertainty.py`);
-- the cells seen only in part or filled from their neighbours (`sigma_coverage`, see `coverage.py`): an
-  independent deviate per cell and survey (which side of a rock's edge a cell shows depends on the view).
-  Without it the POV-Ray flume's undamaged model, dry survey against wet, reported per-profile S up to 1.37
-  with sigma 0.18;
+- the cells seen only in part, filled from their neighbours or straddling a step (`sigma_coverage`, see
+  `coverage.py`): an independent deviate per cell and survey (which side of a rock's edge a cell shows depends
+  on the view). Without it the POV-Ray flume's undamaged model, dry survey against wet, reported per-profile S
+  up to 1.37 with sigma 0.18. The damage now takes the change in such cells from the cells around them that
+  both surveys saw wholly (`seen_change.py`), so in each draw they take their neighbours' perturbed change and
+  this term acts only on the cells a `seen_tolerance_m` above zero lets through;
 
 and the damage is computed again. Each figure's sigma is the standard deviation over the draws, and its 95 %
 interval the wider of value +- 2 sigma and the middle 95 % of the draws. The draws of a figure need not be

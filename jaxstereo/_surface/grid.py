@@ -10,7 +10,7 @@ import numpy as np
 from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike
 from .._stereo.survey import Survey
-from .coverage import filled_sigma, partial_coverage_sigma
+from .coverage import filled_sigma, partial_coverage_sigma, straddle_sigma
 
 SIGMA_LAYERS = ("sigma_match", "sigma_calibration", "sigma_level")
 ERROR_LAYERS = SIGMA_LAYERS + ("dz_subpixel", "sigma_coverage")
@@ -80,6 +80,11 @@ def grid_median(points: np.ndarray, spacing: float, x: np.ndarray | None = None,
     **Arguments:** `points` (N, 3) world metres; `spacing` metres; optional cell-centre axes `x`, `y`
     (default: covering the points); `min_count` fewest points for a cell to get a value.
     """
+    return _grid_median_cells(points, spacing, x, y, min_count)[0]
+
+
+def _grid_median_cells(points, spacing, x, y, min_count) -> tuple[DEM, _CellHeights]:
+    """`grid_median`'s DEM and the sorted heights of its cells."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0:
         raise JaxStereoError(f"points must be a non-empty (N, 3) array, got shape {points.shape}")
@@ -87,20 +92,31 @@ def grid_median(points: np.ndarray, spacing: float, x: np.ndarray | None = None,
         raise JaxStereoError(f"grid spacing must be positive, got {spacing}")
     if x is None or y is None:
         x, y = grid_extent(points, spacing)
-    cell, inside = _cell_index(points, x, y, spacing)
-    z = points[inside, 2]
-    order = np.argsort(z, kind="stable")
-    order = order[np.argsort(cell[order], kind="stable")]
-    cell_sorted = cell[order]
-    z_sorted = z[order]
-    counts = np.bincount(cell_sorted, minlength=x.size * y.size)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    has = counts >= max(1, min_count)
-    lo = starts[has] + (counts[has] - 1) // 2
-    hi = starts[has] + counts[has] // 2
-    out = np.full(x.size * y.size, np.nan)
-    out[has] = 0.5 * (z_sorted[lo] + z_sorted[hi])
-    return DEM(x, y, out.reshape(y.size, x.size), float(spacing))
+    cells = _CellHeights(points, x, y, spacing)
+    has = cells.counts >= max(1, min_count)
+    out = np.where(has, cells.quantile(0.5), np.nan)
+    return DEM(x, y, out.reshape(y.size, x.size), float(spacing)), cells
+
+
+class _CellHeights:
+    """The points' heights sorted within each cell of a grid: `counts` (ny * nx,) points per cell, and
+    `quantile(q)` each cell's height quantile (ny * nx,) metres (the mean of the two middle points' for the
+    median; NaN for empty cells)."""
+
+    def __init__(self, points: np.ndarray, x: np.ndarray, y: np.ndarray, spacing: float):
+        cell, inside = _cell_index(points, x, y, spacing)
+        order = np.lexsort((points[inside, 2], cell))
+        self.z = points[inside, 2][order]
+        self.counts = np.bincount(cell, minlength=x.size * y.size)
+        self.starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]])
+
+    def quantile(self, q: float) -> np.ndarray:
+        has = self.counts > 0
+        position = q * (self.counts[has] - 1)
+        out = np.full(self.counts.size, np.nan)
+        out[has] = 0.5 * (self.z[self.starts[has] + np.floor(position).astype(np.int64)]
+                          + self.z[self.starts[has] + np.ceil(position).astype(np.int64)])
+        return out
 
 
 def fill_holes(dem: DEM, max_gap_m: float) -> DEM:
@@ -134,13 +150,13 @@ def grid_survey(survey: Survey, spacing: float, x: np.ndarray | None = None, y: 
     A cell's matching std is the RMS of its points' `sigma_z_match` divided by the square root of the number of
     independent matches in it (one per `MATCH_CORRELATION_PX`-wide square of pixels: neighbouring matches share
     most of their fitting window, so their errors are nearly the same); its calibration and level stds are
-    the means of its points' (shared errors do not average out); a cell seen in part gets `sigma_coverage`
-    (`partial_coverage_sigma`). `correlation_m` is the matching window's footprint at the survey's median
-    distance from the left camera.
+    the means of its points' (shared errors do not average out); a cell seen in part, or whose points lie on
+    both sides of a step, gets `sigma_coverage` (`partial_coverage_sigma`, `straddle_sigma`). `correlation_m`
+    is the matching window's footprint at the survey's median distance from the left camera.
     """
     from .._stereo.uncertainty import MATCH_CORRELATION_PX
 
-    dem = grid_median(survey.points, spacing, x, y, min_count)
+    dem, heights = _grid_median_cells(survey.points, spacing, x, y, min_count)
     if survey.cov is None or survey.sigma_z_match is None or survey.sigma_z_level is None:
         return dem
     cells, inside = _cell_index(survey.points, dem.x, dem.y, spacing)
@@ -153,7 +169,9 @@ def grid_survey(survey: Survey, spacing: float, x: np.ndarray | None = None, y: 
         return np.where(has, total / np.maximum(count, 1), np.nan).reshape(dem.z.shape)
 
     independent = np.maximum(1.0, count.reshape(dem.z.shape) / MATCH_CORRELATION_PX**2)
-    coverage = partial_coverage_sigma(dem.z, count.reshape(dem.z.shape))
+    spread = (heights.quantile(0.75) - heights.quantile(0.25)).reshape(dem.z.shape)
+    coverage = np.fmax(partial_coverage_sigma(dem.z, count.reshape(dem.z.shape)),
+                       np.where(np.isfinite(dem.z), straddle_sigma(spread, spacing), np.nan))
     match = np.sqrt(cell_mean(survey.sigma_z_match.astype(np.float64) ** 2) / independent)
     return dataclasses.replace(dem, sigma_match=match, sigma_calibration=cell_mean(survey.sigma_z_calibration),
                                sigma_level=cell_mean(survey.sigma_z_level.astype(np.float64)),

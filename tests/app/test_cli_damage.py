@@ -53,6 +53,8 @@ def test_grid_and_damage_commands(surveys, tmp_path, capsys):
     # E3D: the cone's depth averaged over the Dn50 circle at its axis, 0.03 (1 - (2/3) 0.018 / 0.06), over Dn50.
     assert abs(report["E3D"] - 0.03 * (1 - 2 / 3 * 0.018 / 0.06) / 0.036) < 0.03 * report["E3D"]
     assert report["S_max"] > report["averaged_profile"]["S"] > 0
+    # surveys without error bars have no coverage layer: every cell counts as seen, none takes another's change
+    assert report["change_carried_from_seen_cells"] == {"share_of_cells": 0.0, "coverage_tolerance_m": 0.0}
     worst = next(p for p in report["profiles"] if p["y_m"] == report["S_max_at_y_m"])
     assert worst["S"] == report["S_max"] and abs(worst["y_m"]) < 0.06  # a profile through the pit
     assert f"(y {report['S_max_at_y_m']:+.3f} m)" in out
@@ -80,6 +82,8 @@ def test_damage_bad_input(surveys, tmp_path, capsys):
     _error(capsys, main(["damage", *base, "--dn50", "0", "--slope", "2"]), "--dn50 must be positive")
     _error(capsys, main(["damage", *base, "--dn50", "-0.03", "--slope", "2"]), "--dn50 must be positive")
     _error(capsys, main(["damage", *base, "--dn50", "0.036", "--slope", "steep"]), "slope 'steep' does not parse")
+    _error(capsys, main(["damage", *base, "--dn50", "0.036", "--slope", "2", "--seen-tolerance", "-0.001"]),
+           "--seen-tolerance must be 0 or more")
     _error(capsys, main(["damage", str(surveys / "before.npz"), str(surveys / "elsewhere.npz"), "--swl", "0.158",
                          "--dn50", "0.036", "--slope", "2", "-o", str(tmp_path / "r")]), "do not overlap")
     _error(capsys, main(["damage", str(surveys / "missing.npz"), str(surveys / "after.npz"), "--swl", "0.158",

@@ -52,3 +52,43 @@ def test_a_filled_cell_is_as_uncertain_as_the_seen_heights_within_reach():
     far[:, :] = 0.02
     far[8, 9] = np.nan
     assert filled_sigma(far, 1)[8, 9] == 0.0  # a flat neighbourhood: the fill is as good as a measurement
+
+
+def test_a_cell_whose_points_lie_on_both_sides_of_a_step_gets_half_their_spread():
+    from jaxstereo._surface.coverage import STEP_SPREAD_CELLS, straddle_sigma
+
+    spacing = 0.005
+    steepest = 0.005 * np.tan(np.radians(75)) / 2  # a plane at 75 degrees across the cell: its quartiles' spread
+    assert steepest < STEP_SPREAD_CELLS * spacing
+    spread = np.array([0.0, steepest, 0.03, np.nan])
+    np.testing.assert_array_equal(straddle_sigma(spread, spacing), [0.0, 0.0, 0.015, 0.0])
+
+
+def test_grid_survey_marks_the_cells_that_straddle_a_step_and_no_others():
+    """A survey of a slope with a 40 mm step at x = 0.0505 m (inside the cell centred on 0.05): that cell's points
+    lie on both sides, its median on the side that holds more, and its coverage std half their spread; the cells
+    on the 1:2 slope either side get none."""
+    import json
+
+    from jaxstereo import Survey, grid_survey
+
+    rng = np.random.default_rng(4)
+    n = 40000
+    x, y = rng.uniform(0, 0.1, n), rng.uniform(0, 0.1, n)
+    z = x / 2 + 0.04 * (x < 0.0505) + rng.normal(0, 0.0003, n)
+    cov = np.zeros((n, 6), np.float32)
+    cov[:, 2] = 0.001**2
+    rig = {"left": {"R": np.eye(3).tolist(), "t": [0.0, 0.0, -2.0], "fx": 2000.0}, "right": {}}
+    survey = Survey(np.column_stack([x, y, z]), np.zeros((n, 3), np.uint8), np.zeros((n, 2)), np.zeros(n, bool),
+                    json.dumps(rig), "exact", 0.16, cov, np.full(n, 0.001, np.float32), np.zeros(n, np.float32),
+                    np.zeros(n, np.float32))
+    dem = grid_survey(survey, 0.005)
+    column = int(np.argmin(np.abs(dem.x - 0.05)))
+    inner = slice(1, -1)  # the grid's edge cells are half as full
+    step = dem.sigma_coverage[inner, column]
+    inside = (x >= 0.0475) & (x < 0.0525) & (y > 0.0025) & (y < 0.0975)
+    q1, q3 = np.percentile(z[inside], [25, 75])
+    assert np.all(step > 0.015)  # 60 % of the cell above the step: its quartiles 40 mm apart
+    assert np.median(step) == pytest.approx((q3 - q1) / 2, rel=0.05)
+    others = np.delete(dem.sigma_coverage[inner], column, axis=1)[:, 1:-1]
+    assert np.all(others == 0.0)

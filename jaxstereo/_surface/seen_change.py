@@ -1,0 +1,63 @@
+"""The change between two surveys where both saw the surface, carried into the cells one of them did not see.
+
+A cell beside a rock's edge holds whichever side of the edge the cameras saw (`coverage.py`): through air
+the crevice's floor, through water the rock's flank, or the reverse, because refraction moves the viewpoints;
+a cell across the edge takes the side that holds more of its points. Two surveys of an unchanged model then
+disagree there by up to the rock's height, and each such cell reads as erosion or accretion that never
+happened: on the POV-Ray flume's undamaged model, dry survey against wet, profiles read S up to 0.66 (grey
+rock: 1.06) from crevices between rocks that neither survey saw well.
+
+The change itself is smoother than the surfaces: rocks that did not move leave no change at all, and a hole's
+change is its depth, which varies over a stone's size rather than over a cell. So the damage compares the
+surveys where both saw the surface wholly, and each cell that one of them saw only in part or filled from its
+neighbours or straddling a step (its `sigma_coverage` above the tolerance, by default any) takes the change of
+the cells around it that both saw wholly: the median over its 3 x 3 neighbours (one wrong neighbour does not
+carry), else the nearest such cell within a stone's size (Dn50). The after-surface there is the before-surface
+plus that change. On that flume (about 30 % of the cells carried) this brings the undamaged model's largest S to
+0.10 (grey rock: 0.11), and the stage III hole's central A_e reads -2.5 % (was -0.1 %) from the truth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy import ndimage
+
+from .grid import DEM
+
+SEEN_TOLERANCE_M = 0.0  # a cell is seen wholly when no part of it went unseen in either survey
+
+
+def change_where_seen(before: DEM, after: DEM, tolerance_m: float, reach_m: float) -> tuple[DEM, np.ndarray]:
+    """The after-surface to compare with `before`: in each cell that either survey saw only in part or filled
+    (`sigma_coverage` above `tolerance_m` metres, see `coverage.py`), the before-height plus the change
+    (after - before) of the cells both surveys saw wholly: their median over the cell's 3 x 3 neighbours, else
+    the nearest one within `reach_m` metres.
+
+    **Arguments:** two DEMs on one grid (ny, nx), metres. A DEM without a `sigma_coverage` layer (a DEM of
+    the true surface, or one gridded without error bars) counts as seen wholly wherever it has a height.
+
+    **Returns:** `(after', carried)`: the after DEM with its heights replaced in the carried cells (its error
+    layers untouched), and the carried cells (ny, nx) bool. Cells empty in either DEM stay as they were.
+    """
+    known = np.isfinite(before.z) & np.isfinite(after.z)
+    unseen = np.zeros(known.shape, bool)
+    for dem in (before, after):
+        if dem.sigma_coverage is not None:
+            unseen |= ~(np.nan_to_num(dem.sigma_coverage, nan=np.inf) <= tolerance_m)
+    seen = known & ~unseen
+    distance, (rows, cols) = ndimage.distance_transform_edt(~seen, return_indices=True)
+    carried = known & unseen & (distance * before.spacing <= reach_m)
+    if not carried.any():
+        return after, carried
+    change = np.where(seen, after.z - before.z, np.nan)
+    row, col = np.nonzero(carried)
+    padded = np.pad(change, 1, constant_values=np.nan)
+    around = np.stack([padded[row + i, col + j] for i in range(3) for j in range(3)])
+    some = np.isfinite(around).any(axis=0)
+    estimate = change[rows[row, col], cols[row, col]]  # the nearest seen cell's
+    estimate[some] = np.nanmedian(around[:, some], axis=0)
+    z = after.z.copy()
+    z[row, col] = before.z[row, col] + estimate
+    return dataclasses.replace(after, z=z), carried
