@@ -297,8 +297,8 @@ def _cmd_damage(args) -> int:
     print(f"  {width:<18} y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m")
     print(f"  active zone        z {result.active_zone[0]:.3f} to {result.active_zone[1]:.3f} m on the design slope")
     if np.isfinite(result.seen_tolerance):
-        print(f"  seen by both       {100 * result.carried:.1f} % of the cells, seen only in part or filled in one "
-              "survey, take the change of the cells around them that both saw wholly")
+        print(f"  seen by both       {100 * result.carried:.1f} % of the cells, not seen wholly by one survey, take "
+              "the change of the cells around them that both saw wholly")
     print(f"  averaged profile   A_e {pm(a.A_e, 'A_e_m2', 1e4)} cm2  L_e {pm(a.L_e, 'L_e_m', 1e3, 0)} mm  "
           f"d_e {pm(a.d_e, 'd_e_m', 1e3, 1)} mm  S {pm(a.S, 'S')}  E2D {pm(a.E2D, 'E2D')}")
     print(f"  over the stretch   S mean {pm(result.S_mean, 'S_mean_above_threshold')} (S > {result.threshold:g})  "

@@ -47,6 +47,8 @@ def change_where_seen(before: DEM, after: DEM, tolerance_m: float, reach_m: floa
         if dem.sigma_coverage is not None:
             unseen |= ~(np.nan_to_num(dem.sigma_coverage, nan=np.inf) <= tolerance_m)
     seen = known & ~unseen
+    if not seen.any():  # no cell to take a change from
+        return after, np.zeros(known.shape, bool)
     distance, (rows, cols) = ndimage.distance_transform_edt(~seen, return_indices=True)
     carried = known & unseen & (distance * before.spacing <= reach_m)
     if not carried.any():

@@ -116,3 +116,7 @@ def test_a_cell_with_no_seen_neighbour_takes_the_nearest_within_a_stone_and_no_f
     # Without coverage layers nothing is carried (a DEM of the true surfaces, say)
     plain, none = change_where_seen(DEM(x, x, before.z, SPACING), after, 0.0, DN50)
     assert not none.any() and plain is after
+    # Nothing seen wholly by both: nothing to take a change from
+    unseen_all = DEM(x, x, flat, SPACING, sigma_coverage=np.full(flat.shape, 0.01))
+    same, none = change_where_seen(unseen_all, after, 0.0, DN50)
+    assert not none.any() and same is after
