@@ -30,8 +30,8 @@ SEEN_TOLERANCE_M = 0.0  # a cell is seen wholly when no part of it went unseen i
 
 
 def change_where_seen(before: DEM, after: DEM, tolerance_m: float, reach_m: float) -> tuple[DEM, np.ndarray]:
-    """The after-surface to compare with `before`: in each cell that either survey saw only in part or filled
-    (`sigma_coverage` above `tolerance_m` metres, see `coverage.py`), the before-height plus the change
+    """The after-surface to compare with `before`: in each cell that either survey saw only in part, filled or
+    across a step (`sigma_coverage` above `tolerance_m` metres, see `coverage.py`), the before-height plus the change
     (after - before) of the cells both surveys saw wholly: their median over the cell's 3 x 3 neighbours, else
     the nearest one within `reach_m` metres.
 
