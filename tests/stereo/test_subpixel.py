@@ -31,13 +31,12 @@ def _bumped_pair(seed=0):
     return *as_image, start.astype(np.float32), truth
 
 
-def _rms(start, truth, **kwargs):
+def _rms(left, right, start, truth, small_window):
     """RMS error (px) of `refine_disparity` on the bump and on the flat part far from it."""
-    left, right = kwargs.pop("pair")
     v, u = np.mgrid[0:H, 0:W]
     r = np.hypot(v - CENTRE[0], u - CENTRE[1])
     bump, flat = r < 1.5 * WIDTH, (r > 5 * WIDTH) & (u > 40) & (u < W - 40) & (v > 20) & (v < H - 20)
-    d = refine_disparity(left, right, start, window=31, with_sigma=True, **kwargs).disparity
+    d = refine_disparity(left, right, start, window=31, small_window=small_window, with_sigma=True).disparity
     return [float(np.sqrt(np.mean((d[m] - truth[m]) ** 2))) for m in (bump, flat)]
 
 
@@ -45,8 +44,8 @@ def test_the_small_patch_follows_a_curved_surface_the_large_one_smooths():
     """Over a bump 9 px wide the 31 px patch averages the relief (0.16 px RMS on it, measured); where the 15 px
     patch disagrees it is taken (0.15 px: it smooths too, less), and the flat part keeps the large patch."""
     left, right, start, truth = _bumped_pair()
-    bump_large, flat_large = _rms(start, truth, pair=(left, right), small_window=None)
-    bump_both, flat_both = _rms(start, truth, pair=(left, right), small_window=15)
+    bump_large, flat_large = _rms(left, right, start, truth, None)
+    bump_both, flat_both = _rms(left, right, start, truth, 15)
     assert bump_both < 0.97 * bump_large
     assert flat_both <= 1.02 * flat_large
     assert flat_both < 0.05  # the flat part's 0.1 px of start noise gone: 0.002 px measured
@@ -57,8 +56,8 @@ def test_sgbm_block_keeps_the_patch_fit_from_leaving_a_correct_match(monkeypatch
     then fits the refined value far worse than its own and the start stands: 0.36 px RMS on the bump without
     the check, 0.16 with it (with the 15 px patch too: 0.18 and 0.15)."""
     left, right, start, truth = _bumped_pair()
-    checked = _rms(start, truth, pair=(left, right), small_window=None)
+    checked = _rms(left, right, start, truth, None)
     monkeypatch.setattr(matching, "BLOCK_FIT_SIGMAS", 1e9)  # no check
-    unchecked = _rms(start, truth, pair=(left, right), small_window=None)
+    unchecked = _rms(left, right, start, truth, None)
     assert checked[0] < 0.5 * unchecked[0]
     assert checked[1] <= 1.01 * unchecked[1]  # the flat part's refinement kept
