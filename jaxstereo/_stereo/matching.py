@@ -201,19 +201,20 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     channels = L.shape[2]
     sigma_sgbm = None
     block = _window_fit(products[0], (sigma_window, sigma_window), channels) if products else None  # SGBM's own
+    block_at_sgbm = _evaluate(block, d0 - shift) if products else None  # (S_gg, s2) at SGBM's values
     if with_sigma:
-        gg, s2 = _evaluate(block, d0 - shift)
+        gg, s2 = block_at_sgbm
         sigma_sgbm = SGBM_NOISE_SCALE * np.sqrt(s2 / np.maximum(gg, 1e-12))
     if not subpixel:
         zero = None if sigma_sgbm is None else np.zeros_like(d0)
         return Subpixel(_masked(d0, valid), _masked(sigma_sgbm, valid), _masked(zero, valid))
-    refined, sigma_refined, keep = _refine_in_windows(products, block, d0, shift, fraction, weight, valid, window,
-                                                      channels, with_sigma)
+    refined, sigma_refined, keep = _refine_in_windows(products, (block, block_at_sgbm[1]), d0, shift, fraction,
+                                                      weight, valid, window, channels, with_sigma)
     if small_window is not None and small_window < window:
         # Where the surface is curved within the large window (rubble), its fit averages over the relief; the
         # small window's fit is taken where the two disagree by more than their difference's noise.
-        small, sigma_small, keep_small = _refine_in_windows(products, block, d0, shift, fraction, weight, valid,
-                                                            small_window, channels, True)
+        small, sigma_small, keep_small = _refine_in_windows(products, (block, block_at_sgbm[1]), d0, shift, fraction,
+                                                            weight, valid, small_window, channels, True)
         large_sigma = sigma_refined if sigma_refined is not None else np.zeros_like(small)
         noise = np.sqrt(np.maximum(sigma_small**2 - large_sigma**2, 0.0))
         use_small = keep_small & (~keep | ~(np.abs(refined - small) <= WINDOW_AGREEMENT * noise))
@@ -236,7 +237,8 @@ def _refine_in_windows(products, block, d0, shift, fraction, weight, valid, wind
     """Lucas-Kanade over `window` x `window` patches (see `refine_disparity`): the refined disparities (h, w),
     their standard deviations (h, w, or None without `with_sigma`), and where they are kept (h, w) bool: the
     patch's SGBM disparities agree within `MAX_SPREAD_PX`, it is at least half matched, and the refined
-    value stays within 1 px of SGBM's and fits SGBM's own `block` (`_fits_block`)."""
+    value stays within 1 px of SGBM's and fits SGBM's own block (`block`: its window fit and its residual
+    variance at SGBM's values; `_fits_block`)."""
     # Each pixel's equation is linearised about both of its whole-pixel bases, weighted by its SGBM fraction,
     # before the window sums: blending the two windows' solutions with the centre pixel's fraction instead
     # carried that one fraction's noise (SGBM's, 0.3 px) into the result, times the two linearisations'
@@ -255,18 +257,18 @@ def _refine_in_windows(products, block, d0, shift, fraction, weight, valid, wind
     square = cv2.boxFilter(centred * centred, -1, box, normalize=False) / np.maximum(count, 1)
     smooth = np.sqrt(np.maximum(square - mean * mean, 0.0)) <= MAX_SPREAD_PX
     keep = (valid & smooth & (count >= 0.5 * window * window) & (np.abs(refined - d0) < 1.0)
-            & _fits_block(block, d0 - shift, refined - shift))
+            & _fits_block(*block, refined - shift))
     return refined, sigma_refined, keep
 
 
-def _fits_block(block, sgbm, refined):
-    """Where the refined disparities (h, w) fit SGBM's own block (`block`: its window fit, see `_window_fit`)
-    about as well as SGBM's values (h, w) do, both relative to the sums' `k`: the block's residual sum of squares
-    at the refined value exceeds the one at SGBM's by at most `(c sigma)^2 S_gg`, with `c = BLOCK_FIT_SIGMAS` and
-    `sigma` SGBM's standard deviation as `refine_disparity` counts it (the block's least-squares one times
-    `SGBM_NOISE_SCALE`). The rise is `S_gg ((refined - m)^2 - (sgbm - m)^2)` with `m` the block's own best
-    fit: where SGBM's value is that best fit, the refined one must lie within `c sigma` of it."""
-    _, s2_sgbm = _evaluate(block, sgbm)
+def _fits_block(block, s2_sgbm, refined):
+    """Where the refined disparities (h, w, relative to the sums' `k`) fit SGBM's own block (`block`: its window
+    fit, see `_window_fit`) about as well as SGBM's values do (`s2_sgbm`: the block's residual variance there):
+    the block's residual sum of squares at the refined value exceeds the one at SGBM's by at most
+    `(c sigma)^2 S_gg`, with `c = BLOCK_FIT_SIGMAS` and `sigma` SGBM's standard deviation as `refine_disparity`
+    counts it (the block's least-squares one times `SGBM_NOISE_SCALE`). The rise is
+    `S_gg ((refined - m)^2 - (sgbm - m)^2)` with `m` the block's own best fit: where SGBM's value is that best
+    fit, the refined one must lie within `c sigma` of it."""
     _, s2_refined = _evaluate(block, refined)
     rise = (s2_refined - s2_sgbm) * np.maximum(block[4] - 1, 1)  # rss = s2 (n - 1)
     return rise <= (BLOCK_FIT_SIGMAS * SGBM_NOISE_SCALE) ** 2 * s2_sgbm
