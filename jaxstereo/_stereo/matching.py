@@ -139,21 +139,24 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     disparities floor(d) and floor(d) + 1 of the pixels in the patch (right image sampled at whole pixels,
     never interpolated: interpolation blurs fine texture by an amount that depends on the fraction, and
     dense steps from fractional starts mix the neighbours' own shifts), each pixel's two linearisations weighted
-    by its SGBM fraction inside the patch's sums. It is kept only where the patch's SGBM disparities agree
-    within `MAX_SPREAD_PX` (standard deviation; a smooth surface, not an edge), it stays within 1 px of
-    SGBM's, and SGBM's own `sigma_window` block fits it within `BLOCK_FIT_SIGMAS` standard deviations
-    (`_fits_block`: a patch across relief or an edge can pull the fit off a correct match; the block, which
-    SGBM's cost chose, says so); elsewhere SGBM's value is kept. With a `small_window`, the same fit over that
-    smaller patch replaces the large one's where the two differ by more than `WINDOW_AGREEMENT` standard deviations of
-    their difference (or only the small one is kept): a curved surface (rubble) whose relief the large patch
-    averages over. On the POV-Ray flume's rubble the 31 px patch smooths rocks 0.6 Dn50 wide; the 15 px patch
-    there brings the wet and dry surveys' median difference from 1.65 to 1.3 mm, while the flat board keeps
-    the large patch.
+    by its SGBM fraction inside the patch's sums. On a surface inclined to the image that one shift is the
+    disparity where the patch's gradient energy lies, not at its centre: it is moved to the centre along the
+    plane fitted to the patch's SGBM disparities (`_disparity_plane`, `_energy_centroid`). It is kept only
+    where those disparities lie within `MAX_SPREAD_PX` of that plane (standard deviation: a smooth surface,
+    inclined or not, not an edge), it stays within 1 px of SGBM's, and SGBM's own `sigma_window` block fits it
+    within `BLOCK_FIT_SIGMAS` standard deviations (`_fits_block`: a patch across relief or an edge can pull the
+    fit off a correct match; the block, which SGBM's cost chose, says so); elsewhere SGBM's value is kept.
+    With a `small_window`, the same fit over that smaller patch replaces the large one's where the two differ by
+    more than `WINDOW_AGREEMENT` standard deviations of their difference (or only the small one is kept): a
+    curved surface (rubble) whose relief the large patch averages over. On the POV-Ray flume's rubble the 31 px
+    patch smooths rocks 0.6 Dn50 wide; the 15 px patch there brings the wet and dry surveys' median difference
+    from 1.65 to 1.3 mm, while the flat board keeps the large patch.
     Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them.
-    On the POV-Ray flume's nadir board the survey's error normal to the board is 1.33 mm RMS under water
-    (SGBM's own sub-pixel values: 3.09 mm). On its dry rubble, against disparities ray-cast from the true
-    surface, 9.77 % of the pixels are off by more than 1 px (SGBM's own values 9.74 %) and the others by
-    0.186 px on average (SGBM 0.247 px).
+    On the POV-Ray flume's nadir board the survey's error normal to the board is 1.20 mm RMS under water
+    (SGBM's own sub-pixel values: 3.09 mm; 1.33 mm when the spread was taken about the patch's mean, which on
+    the inclined board left 1 % of the pixels to SGBM's values). On its dry rubble, against disparities
+    ray-cast from the true surface through the true rig, 9.52 % of the pixels are off by more than 1 px
+    (SGBM's own values 9.62 %) and the others by 0.182 px on average (SGBM 0.246 px).
 
     The standard deviation is the least-squares one, `sqrt(s2 / sum(g^2))` with `s2` the patch's residual
     variance at the estimate (linearised about the lower whole-pixel bases) and `g` the right image's
@@ -208,13 +211,14 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     if not subpixel:
         zero = None if sigma_sgbm is None else np.zeros_like(d0)
         return Subpixel(_masked(d0, valid), _masked(sigma_sgbm, valid), _masked(zero, valid))
+    plane_terms = _plane_terms(d0, weight, shift)
     refined, sigma_refined, keep = _refine_in_windows(products, (block, block_at_sgbm[1]), d0, shift, fraction,
-                                                      weight, valid, window, channels, with_sigma)
+                                                      plane_terms, valid, window, channels, with_sigma)
     if small_window is not None and small_window < window:
         # Where the surface is curved within the large window (rubble), its fit averages over the relief; the
         # small window's fit is taken where the two disagree by more than their difference's noise.
         small, sigma_small, keep_small = _refine_in_windows(products, (block, block_at_sgbm[1]), d0, shift, fraction,
-                                                            weight, valid, small_window, channels, True)
+                                                            plane_terms, valid, small_window, channels, True)
         large_sigma = sigma_refined if sigma_refined is not None else np.zeros_like(small)
         noise = np.sqrt(np.maximum(sigma_small**2 - large_sigma**2, 0.0))
         use_small = keep_small & (~keep | ~(np.abs(refined - small) <= WINDOW_AGREEMENT * noise))
@@ -232,33 +236,83 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
 WINDOW_AGREEMENT = 3.0  # the large window's value stands where the small one's is within 3 sigma of it
 
 
-def _refine_in_windows(products, block, d0, shift, fraction, weight, valid, window: int, channels: int,
+def _refine_in_windows(products, block, d0, shift, fraction, plane_terms, valid, window: int, channels: int,
                        with_sigma: bool):
     """Lucas-Kanade over `window` x `window` patches (see `refine_disparity`): the refined disparities (h, w),
     their standard deviations (h, w, or None without `with_sigma`), and where they are kept (h, w) bool: the
-    patch's SGBM disparities agree within `MAX_SPREAD_PX`, it is at least half matched, and the refined
-    value stays within 1 px of SGBM's and fits SGBM's own block (`block`: its window fit and its residual
-    variance at SGBM's values; `_fits_block`)."""
+    patch's SGBM disparities lie within `MAX_SPREAD_PX` of their plane (`plane_terms`, see `_plane_terms`), it
+    is at least half matched, and the refined value stays within 1 px of SGBM's and fits SGBM's own block
+    (`block`: its window fit and its residual variance at SGBM's values; `_fits_block`)."""
     # Each pixel's equation is linearised about both of its whole-pixel bases, weighted by its SGBM fraction,
     # before the window sums: blending the two windows' solutions with the centre pixel's fraction instead
     # carried that one fraction's noise (SGBM's, 0.3 px) into the result, times the two linearisations'
     # difference (on the POV-Ray flume's nadir board, 0.09 px of pixel-to-pixel noise: 1.85 mm RMS
     # under water where the blend inside the sums gives 1.29 mm).
     blended = [(1 - fraction) * a + fraction * b for a, b in zip(products[0][:4], products[1][:4])]
-    refined = _window_fit(blended, (window, window), channels)[2] + shift
+    box = (window, window)
+    fit = _window_fit(blended, box, channels)
     sigma_refined = None
     if with_sigma:
-        gg, s2 = _evaluate(_window_fit(products[0], (window, window), channels), refined - shift)
+        gg, s2 = _evaluate(_window_fit(products[0], box, channels), fit[2])
         sigma_refined = MATCH_NOISE_SCALE * np.sqrt(s2 / np.maximum(gg, 1e-12))
-    box = (window, window)
-    count = cv2.boxFilter(weight, -1, box, normalize=False)
-    centred = (d0 - np.float32(shift)) * weight  # small numbers: the float32 variance stays exact enough
-    mean = cv2.boxFilter(centred, -1, box, normalize=False) / np.maximum(count, 1)
-    square = cv2.boxFilter(centred * centred, -1, box, normalize=False) / np.maximum(count, 1)
-    smooth = np.sqrt(np.maximum(square - mean * mean, 0.0)) <= MAX_SPREAD_PX
-    keep = (valid & smooth & (count >= 0.5 * window * window) & (np.abs(refined - d0) < 1.0)
+    count, slope, spread = _disparity_plane(plane_terms, window)
+    # The patch's one shift is its pixels' disparities averaged with their gradient energy as weights: on a
+    # surface inclined to the image (disparity `slope` px per px) it is the disparity at the energy's centroid,
+    # not at the patch's centre. Moved back to the centre along the plane:
+    centroid = _energy_centroid(blended[0], fit[0], box)
+    refined = fit[2] + shift - (slope[0] * centroid[0] + slope[1] * centroid[1])
+    keep = (valid & (spread <= MAX_SPREAD_PX) & (count >= 0.5 * window * window) & (np.abs(refined - d0) < 1.0)
             & _fits_block(*block, refined - shift))
     return refined, sigma_refined, keep
+
+
+def _plane_terms(d0, weight, shift: float):
+    """Per-pixel terms (float32, (h, w) each) of the plane fit to SGBM's disparities `d0` (h, w) px where
+    `weight` (h, w) is 1, with disparities relative to `shift` px and image coordinates from the image's centre:
+    `(w, w u, w v, w u u, w v v, w u v, w d, w d u, w d v, w d d)`; see `_disparity_plane`."""
+    h, w = d0.shape
+    u = np.arange(w, dtype=np.float32)[None, :] - np.float32(w // 2)
+    v = np.arange(h, dtype=np.float32)[:, None] - np.float32(h // 2)
+    d = np.where(weight > 0, d0 - np.float32(shift), np.float32(0.0))
+    wu, wv = weight * u, weight * v
+    return (weight, wu, wv, wu * u, wv * v, wu * v, d, d * u, d * v, d * d)
+
+
+def _disparity_plane(terms, window: int):
+    """The plane fitted to the SGBM disparities of each `window` x `window` patch (`terms` from `_plane_terms`):
+    the patch's number of matched pixels (h, w), the plane's slopes `(d/du, d/dv)` (two (h, w) arrays, px per
+    px) and the disparities' standard deviation about it (h, w) px, all float32. (The central moments are
+    differences of sums up to 1e9 in float32: about 1e-3 of the coordinates' own, far below what the test
+    and the slopes need.)"""
+    box = (window, window)
+    n, su, sv, suu, svv, suv, sd, sdu, sdv, sdd = (cv2.boxFilter(a, -1, box, normalize=False) for a in terms)
+    m = np.maximum(n, np.float32(1.0))
+    mu, mv, md = su / m, sv / m, sd / m
+    cuu, cvv = suu - su * mu, svv - sv * mv
+    cuv, cdu, cdv = suv - su * mv, sdu - sd * mu, sdv - sd * mv
+    cdd = sdd - sd * md
+    det = cuu * cvv - cuv * cuv
+    ok = det > np.float32(1e-3) * cuu * cvv  # a patch with its matched pixels on one line has no plane
+    det[~ok] = 1.0
+    a = (cvv * cdu - cuv * cdv) / det
+    b = (cuu * cdv - cuv * cdu) / det
+    a[~ok] = 0.0
+    b[~ok] = 0.0
+    residual = cdd - a * cdu - b * cdv
+    np.maximum(residual, 0.0, out=residual)
+    return n, (a, b), np.sqrt(residual / m)
+
+
+def _energy_centroid(gg, s_gg, box):
+    """Where each patch's gradient energy lies: the offsets (du, dv) px ((h, w) each, float32) of its centroid,
+    weighted by the per-pixel energy `gg` (h, w), from the patch's centre; `s_gg` (h, w) the energy's window sum."""
+    h, w = gg.shape
+    u = np.arange(w, dtype=np.float32)[None, :] - np.float32(w // 2)
+    v = np.arange(h, dtype=np.float32)[:, None] - np.float32(h // 2)
+    total = np.maximum(s_gg, np.float32(1e-12))
+    du = cv2.boxFilter(gg * u, -1, box, normalize=False) / total - u
+    dv = cv2.boxFilter(gg * v, -1, box, normalize=False) / total - v
+    return du, dv
 
 
 def _fits_block(block, s2_sgbm, refined):
@@ -313,7 +367,10 @@ SGBM_NOISE_SCALE = 1.4
 # nadir board 1.49 mm RMS under water, 1.33 at 3 sigma, 1.29 without); 4.3 sigma let more rubble through (its
 # submerged MAE 1.88 mm against 1.82 at 3 sigma, 1.96 without).
 BLOCK_FIT_SIGMAS = 3.0
-MAX_SPREAD_PX = 0.5  # a patch whose SGBM disparities spread more (std) straddles an edge: SGBM's value stays
+# A patch whose SGBM disparities spread more about their plane (std) straddles an edge or relief: SGBM's value
+# stays. About their mean instead, the inclined nadir board's 31 px patches spread 0.5-0.6 px without an edge
+# (its disparity changes 1.35 px across one): 1 % of its pixels kept SGBM's values, 6.7 mm RMS against 1.06.
+MAX_SPREAD_PX = 0.5
 
 
 def _fit_products(g, r, k, weight, residuals: bool):

@@ -87,6 +87,7 @@ def test_refinement_sharpens_correct_matches_and_leaves_none(x64):
     off_sgbm, rest_sgbm = _scores(sgbm[::ROW_STEP], true)
     off_refined, rest_refined = _scores(refined[::ROW_STEP], true)
     assert off_sgbm < 12  # SGBM's own values (two-way, fattening dropped): 9.62 % measured
-    # No correct match lost: 9.67 % measured (9.80 % without the check against SGBM's own block)
+    # No correct match lost: 9.52 % measured (9.80 % without the check against SGBM's own block; 10.01 % with the
+    # patches judged about their plane but their shift left at the gradient energy's centroid)
     assert off_refined <= off_sgbm + 0.08
-    assert rest_refined <= 0.8 * rest_sgbm  # 0.186 px against 0.246 px measured
+    assert rest_refined <= 0.8 * rest_sgbm  # 0.182 px against 0.246 px measured
