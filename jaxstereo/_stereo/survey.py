@@ -152,10 +152,23 @@ def save_ply(survey: Survey, path: PathLike) -> None:
             fh.write(record.tobytes())
 
 
+# (left, bottom, width, height) in figure fractions: the image panel, the top view, the colour bar
+PREVIEW_PANELS = ((0.06, 0.1, 0.39, 0.78), (0.52, 0.1, 0.38, 0.78), (0.92, 0.15, 0.012, 0.68))
+
+
 def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title: str = "") -> None:
-    """Two panels: height in the left image's pixels, and a top view (x, y) coloured by height."""
-    from .._app.plots import new_figure, save_figure
-    fig, axes = new_figure(1, 2, figsize=(13, 4.8))
+    """Two panels: height in the left image's pixels, and a top view (x, y) coloured by height.
+
+    The panels sit at fixed places (`PREVIEW_PANELS`) instead of a constrained layout, which measured the
+    text of every tick to place them: on the development flume's wet breakwater (1.3 million points, 2-core
+    machine) the preview takes 0.6 s instead of 1.3 s, in a command that draws one per survey.
+    """
+    from matplotlib.figure import Figure
+
+    from .._app.plots import save_figure
+
+    fig = Figure(figsize=(13, 4.8))
+    axes = [fig.add_axes(box) for box in PREVIEW_PANELS[:2]]
     w, h = image_size
     z = survey.points[:, 2]
     if len(survey):
@@ -178,12 +191,12 @@ def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title
     if np.isfinite(survey.water_level) and survey.submerged.any():
         axes[1].plot([], [], "s", color="tab:blue", label=f"{100 * survey.submerged.mean():.0f}% submerged")
         axes[1].legend(loc="upper right", fontsize=8)
-    axes[1].set_aspect("equal")
+    axes[1].set_aspect("equal", anchor="W")  # a narrow top view sits beside the image panel
     axes[1].set_xlabel("x (m)")
     axes[1].set_ylabel("y (m)")
     axes[1].set_title("top view")
-    fig.colorbar(im, ax=axes, label="z (m)", shrink=0.85)
-    fig.suptitle(title or f"survey: {len(survey)} points, model {survey.model}")
+    fig.colorbar(im, cax=fig.add_axes(PREVIEW_PANELS[2]), label="z (m)")
+    fig.suptitle(title or f"survey: {len(survey)} points, model {survey.model}", y=0.98)
     save_figure(fig, path)
 
 
