@@ -268,8 +268,9 @@ def _refine_in_windows(products, block, d0, shift, fraction, plane_terms, valid,
 
 def _plane_terms(d0, weight, shift: float):
     """Per-pixel terms (float32, (h, w) each) of the plane fit to SGBM's disparities `d0` (h, w) px where
-    `weight` (h, w) is 1, with disparities relative to `shift` px and image coordinates from the image's centre:
-    `(w, w u, w v, w u u, w v v, w u v, w d, w d u, w d v, w d d)`; see `_disparity_plane`."""
+    `weight` (h, w) is 1: with `m` the weight, `d` the disparity less `shift` px and `u`, `v` the column and row
+    from the image's centre, `(m, m u, m v, m u u, m v v, m u v, m d, m d u, m d v, m d d)`; see
+    `_disparity_plane`."""
     h, w = d0.shape
     u = np.arange(w, dtype=np.float32)[None, :] - np.float32(w // 2)
     v = np.arange(h, dtype=np.float32)[:, None] - np.float32(h // 2)
@@ -365,7 +366,8 @@ SGBM_NOISE_SCALE = 1.4
 # 1 px is SGBM's own (9.77 %, SGBM 9.74 %; 9.90 % without the check) and the others' mean error 0.186 px
 # (SGBM 0.247, 0.194 without). 2 sigma dropped good moves on the boards, whose JPEG noise is correlated (the
 # nadir board 1.49 mm RMS under water, 1.33 at 3 sigma, 1.29 without); 4.3 sigma let more rubble through (its
-# submerged MAE 1.88 mm against 1.82 at 3 sigma, 1.96 without).
+# submerged MAE 1.88 mm against 1.82 at 3 sigma, 1.96 without). All measured before the patches were judged
+# about their plane.
 BLOCK_FIT_SIGMAS = 3.0
 # A patch whose SGBM disparities spread more about their plane (std) straddles an edge or relief: SGBM's value
 # stays. About their mean instead, the inclined nadir board's 31 px patches spread 0.5-0.6 px without an edge
