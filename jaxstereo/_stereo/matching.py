@@ -253,6 +253,8 @@ def _refine_in_windows(products, block, d0, shift, fraction, plane_terms, valid,
     fit = _window_fit(blended, box, channels)
     sigma_refined = None
     if with_sigma:
+        # The residual at the patch's own least-squares shift (before the move along the plane, which leaves
+        # the fit's noise as it is)
         gg, s2 = _evaluate(_window_fit(products[0], box, channels), fit[2])
         sigma_refined = MATCH_NOISE_SCALE * np.sqrt(s2 / np.maximum(gg, 1e-12))
     count, slope, spread = _disparity_plane(plane_terms, window)
