@@ -543,6 +543,8 @@ def main(argv=None) -> int:
     }[args.command]
     import jax
 
+    from .._stereo.table_cache import use_table_cache
+
     _use_compilation_cache(jax)
     try:
         with jax.enable_x64(True):  # geometry in float64, for this command only
@@ -550,23 +552,31 @@ def main(argv=None) -> int:
     except (JaxStereoError, OSError) as err:
         print(f"jaxstereo {args.command}: error: {err}", file=sys.stderr)
         return 2
+    finally:
+        use_table_cache(None)  # a caller that runs commands in its own process keeps the library's default
 
 
 def _use_compilation_cache(jax) -> None:
-    """Keep compiled functions on disk between commands (JAX's persistent cache), so that a second command
-    on this machine compiles nothing. The folder is $JAXSTEREO_CACHE_DIR, or jaxstereo/jax under
-    $XDG_CACHE_HOME (~/.cache); JAXSTEREO_CACHE_DIR=off disables it. Set by the command line only: the
-    library never changes JAX's configuration."""
+    """Keep compiled functions (JAX's persistent cache, in jax/) and the tables computed from the rig alone
+    (`table_cache.py`, in tables/) on disk between commands, so that a second command on this machine with
+    the same rig compiles and tabulates nothing. The folder is $JAXSTEREO_CACHE_DIR, or jaxstereo under
+    $XDG_CACHE_HOME (~/.cache); JAXSTEREO_CACHE_DIR=off disables both. Set by the command line only: the
+    library never changes JAX's configuration and keeps no table on disk unless asked."""
     import os
 
-    folder = os.environ.get("JAXSTEREO_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxstereo", "jax")
-    if folder.lower() == "off":
+    from .._stereo.table_cache import use_table_cache
+
+    root = os.environ.get("JAXSTEREO_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxstereo")
+    if root.lower() == "off":
+        use_table_cache(None)
         return
+    folder = os.path.join(root, "jax")
     try:
         os.makedirs(folder, exist_ok=True)
     except OSError:
-        return  # a read-only home: run without the cache rather than fail
+        return  # a read-only home: run without the caches rather than fail
+    use_table_cache(os.path.join(root, "tables"))
     jax.config.update("jax_compilation_cache_dir", folder)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

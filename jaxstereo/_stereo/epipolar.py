@@ -19,6 +19,7 @@ from .._geometry.interface import Interface
 from .._geometry.refraction import intersect_plane, refract_directions, refraction_points
 from .._geometry.triangulate import triangulate_rays
 from .rectify import Rectification, rectified_rays
+from .table_cache import cached_tables
 
 
 def _rectified_pixel(rect: Rectification, side: int, surface: Float[ArrayLike, "*b 3"], camera: Camera) -> Float[Array, "*b 2"]:
@@ -95,11 +96,16 @@ def disparity_bounds(rect: Rectification, left: Camera, right: Camera, interface
     exactly into the right rectified image.
     """
     w, h = rect.size
-    u, v = np.meshgrid(np.linspace(0, w - 1, 24), np.linspace(0, h - 1, 16))
-    pixels = jnp.asarray(np.stack([u.ravel(), v.ravel()], axis=-1))
-    d, ok = _disparity_samples(rect, left, right, interface, pixels, jnp.asarray([z_lo, z_hi]))
-    d = np.asarray(d)[np.asarray(ok)]
-    d = d[np.isfinite(d)]
+
+    def samples() -> dict:
+        u, v = np.meshgrid(np.linspace(0, w - 1, 24), np.linspace(0, h - 1, 16))
+        pixels = jnp.asarray(np.stack([u.ravel(), v.ravel()], axis=-1))
+        d, ok = _disparity_samples(rect, left, right, interface, pixels, jnp.asarray([z_lo, z_hi]))
+        d = np.asarray(d)[np.asarray(ok)]
+        return {"disparities": d[np.isfinite(d)]}
+
+    d = cached_tables("disparity bounds", (rect, left, right, interface, float(z_lo), float(z_hi)),
+                      samples)["disparities"]
     if d.size == 0:
         return None
     return float(d.min()), float(d.max())

@@ -36,6 +36,7 @@ from .matching import MatchOptions, Subpixel, disparity_search_range, refine_dis
 from .photometric import MAX_RESIDUAL_RATIO, photometric_outliers
 from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, remap
 from .survey import Survey
+from .table_cache import cached_tables
 from .uncertainty import SharedErrors, point_covariances, shared_covariance_table, shared_errors
 
 log = logging.getLogger("jaxstereo")
@@ -239,10 +240,15 @@ def _row_offsets(rect, rig, interface, disparity, search):
     ds = np.arange(search[0], search[0] + search[1] + OFFSET_GRID_DISPARITY_PX, OFFSET_GRID_DISPARITY_PX,
                    dtype=np.float64)
     V, U, Dg = np.meshgrid(vs, us, ds, indexing="ij")
-    rl = np.stack([U.ravel(), V.ravel()], axis=-1)
-    rr = np.stack([U.ravel() - Dg.ravel(), V.ravel()], axis=-1)
-    (table,) = _chunked(exact_row_offset, (rect, rig.left, rig.right, interface), rl, rr)
-    table = np.nan_to_num(table.reshape(V.shape), nan=0.0)
+
+    def exact() -> dict:
+        rl = np.stack([U.ravel(), V.ravel()], axis=-1)
+        rr = np.stack([U.ravel() - Dg.ravel(), V.ravel()], axis=-1)
+        (table,) = _chunked(exact_row_offset, (rect, rig.left, rig.right, interface), rl, rr)
+        return {"offset": np.nan_to_num(table.reshape(V.shape), nan=0.0)}
+
+    inputs = (rect, rig.left, rig.right, interface, (h, w), tuple(int(k) for k in search))
+    table = cached_tables("exact row offsets", inputs, exact)["offset"]
     v, u = np.nonzero(np.isfinite(disparity))
     coords = np.stack([v / OFFSET_GRID_PX, u / OFFSET_GRID_PX,
                        (disparity[v, u] - search[0]) / OFFSET_GRID_DISPARITY_PX])

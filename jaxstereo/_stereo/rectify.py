@@ -20,6 +20,7 @@ from .._geometry.errors import JaxStereoError
 from .._geometry.first_order import _virtual_camera
 from .._geometry.interface import Interface, check_camera_above
 from .._geometry.refraction import intersect_plane
+from .table_cache import cached_tables
 
 
 class Rectification(eqx.Module):
@@ -64,6 +65,15 @@ def rectify(left: Camera, right: Camera, interface: Interface | None, mode: str)
 
 def rectify_checked(left: Camera, right: Camera, interface: Interface | None, mode: str) -> Rectification:
     """`rectify` for callers that validated the mode, the interface and the cameras' heights once already."""
+    itf = interface if mode == "water" else None
+    arrays = cached_tables("rectification", (left, right, itf, mode),
+                           lambda: _rectification_arrays(left, right, interface, mode))
+    return Rectification(jnp.asarray(arrays["K"]), jnp.asarray(arrays["R"]), jnp.asarray(arrays["centers"]), itf,
+                         mode, left.image_size)
+
+
+def _rectification_arrays(left: Camera, right: Camera, interface: Interface | None, mode: str) -> dict:
+    """The rectification's `K` (3, 3), `R` (3, 3) and `centers` (2, 3), float64 numpy."""
     cams = (_virtual_camera(left, interface), _virtual_camera(right, interface)) if mode == "water" else (left, right)
     c0, c1 = (np.asarray(c.center, dtype=np.float64) for c in cams)
     x = c1 - c0
@@ -84,8 +94,7 @@ def rectify_checked(left: Camera, right: Camera, interface: Interface | None, mo
         d = R @ np.asarray(cam.pose.R)[2]
         shift.append(f * d[:2] / d[2])
     K[:2, 2] -= np.mean(shift, axis=0)
-    return Rectification(jnp.asarray(K), jnp.asarray(R), jnp.asarray(np.stack([c0, c1])),
-                         interface if mode == "water" else None, mode, (w, h))
+    return {"K": K, "R": R, "centers": np.stack([c0, c1])}
 
 
 def rectified_to_real(rect: Rectification, camera: Camera, side: int, pixels):
@@ -151,11 +160,16 @@ def rectification_maps(rect: Rectification, camera: Camera, side: int) -> tuple[
     # Through the water the map is smooth (a plane homography composed with the lens): computed exactly on a
     # grid every MAP_STEP pixels and interpolated bilinearly (error below 1e-3 px, see the tests).
     us, vs = _coarse_axis(w), _coarse_axis(h)
-    u, v = np.meshgrid(us, vs)
-    real, ok = rectified_to_real_jit(rect, camera, side, jnp.asarray(np.stack([u, v], axis=-1)))
-    A, B = _linear_upsampling(vs, h), _linear_upsampling(us, w)
-    full = [A @ np.asarray(real[..., k], dtype=np.float64) @ B.T for k in range(2)]
-    valid = (A @ np.asarray(ok, dtype=np.float64) @ B.T) > 1.0 - 1e-9
+
+    def coarse() -> dict:
+        u, v = np.meshgrid(us, vs)
+        real, ok = rectified_to_real_jit(rect, camera, side, jnp.asarray(np.stack([u, v], axis=-1)))
+        return {"real": np.asarray(real), "ok": np.asarray(ok)}
+
+    grid = cached_tables("rectification map grid", (rect, camera, side), coarse)
+    real, ok = grid["real"], grid["ok"]
+    full = [_upsample(np.asarray(real[..., k], dtype=np.float64), h, w) for k in range(2)]
+    valid = _upsample(np.asarray(ok, dtype=np.float64), h, w) > 1.0 - 1e-9
     maps = [np.where(valid, m, -1.0).astype(np.float32) for m in full]
     return maps[0], maps[1]
 
@@ -167,15 +181,19 @@ def _coarse_axis(n: int) -> np.ndarray:
     return np.arange(0, n - 1 + MAP_STEP, MAP_STEP, dtype=np.float64)
 
 
-def _linear_upsampling(coarse: np.ndarray, n: int) -> np.ndarray:
-    """(n, len(coarse)) matrix of linear interpolation weights from the `coarse` positions to 0..n-1."""
+def _upsample(coarse: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Bilinear interpolation (h, w) of values on the grid every `MAP_STEP` pixels (`_coarse_axis` in v and u)."""
+    (kv, tv), (ku, tu) = _linear_weights(h, coarse.shape[0]), _linear_weights(w, coarse.shape[1])
+    rows = coarse[kv] * (1.0 - tv)[:, None] + coarse[kv + 1] * tv[:, None]  # (h, coarse columns)
+    return rows[:, ku] * (1.0 - tu) + rows[:, ku + 1] * tu
+
+
+def _linear_weights(n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """For pixels 0..n-1: the coarse node before each (n,) int, of `m` nodes every `MAP_STEP`, and the weight of
+    the node after it (n,)."""
     x = np.arange(n, dtype=np.float64)
-    k = np.minimum((x // MAP_STEP).astype(int), len(coarse) - 2)
-    t = (x - coarse[k]) / MAP_STEP
-    W = np.zeros((n, len(coarse)))
-    W[np.arange(n), k] = 1.0 - t
-    W[np.arange(n), k + 1] = t
-    return W
+    k = np.minimum((x // MAP_STEP).astype(int), m - 2)
+    return k, (x - k * MAP_STEP) / MAP_STEP
 
 
 def remap(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:

@@ -31,6 +31,7 @@ from .._geometry.pose import so3_exp
 from .._geometry.refraction import intersect_plane, refract_directions
 from .._geometry.triangulate import triangulate_rays
 from .rectify import Rectification, rectified_rays
+from .table_cache import cached_tables
 
 SHARED_PARAMETERS = ("frame rotation x (rad)", "frame rotation y (rad)", "frame rotation z (rad)",
                      "frame shift x (m)", "frame shift y (m)", "frame shift z (m)",
@@ -146,13 +147,19 @@ def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface 
     padded = 1 << max(10, int(np.ceil(np.log2(n))))  # a few compiled sizes, not one per search range
     rl = np.stack([U.ravel(), V.ravel()], axis=-1)
     rr = np.stack([U.ravel() - D.ravel(), V.ravel()], axis=-1)
-    rl, rr = (jnp.asarray(np.pad(a, ((0, padded - n), (0, 0)), mode="edge")) for a in (rl, rr))
-    J = np.asarray(_shared_jacobians_jit(rect, rig.left, rig.right, interface, rl, rr))[:, :n]
-    cov = np.einsum("cnik,kl,cnjl->cnij", J, shared.cov, J)
-    level_zz = J[..., 2, 13] ** 2 * shared.cov[13, 13]
-    seven = np.stack([cov[..., 0, 0], cov[..., 1, 1], cov[..., 2, 2], cov[..., 0, 1], cov[..., 0, 2], cov[..., 1, 2],
-                      level_zz], axis=-1)
-    seven = np.nan_to_num(seven, nan=0.0, posinf=0.0, neginf=0.0)
+
+    def table() -> dict:
+        padded_l, padded_r = (jnp.asarray(np.pad(a, ((0, padded - n), (0, 0)), mode="edge")) for a in (rl, rr))
+        J = np.asarray(_shared_jacobians_jit(rect, rig.left, rig.right, interface, padded_l, padded_r))[:, :n]
+        cov = np.einsum("cnik,kl,cnjl->cnij", J, shared.cov, J)
+        level_zz = J[..., 2, 13] ** 2 * shared.cov[13, 13]
+        seven = np.stack([cov[..., 0, 0], cov[..., 1, 1], cov[..., 2, 2], cov[..., 0, 1], cov[..., 0, 2],
+                          cov[..., 1, 2], level_zz], axis=-1)
+        return {"table": np.nan_to_num(seven, nan=0.0, posinf=0.0, neginf=0.0)}
+
+    inputs = (rect, rig.left, rig.right, interface, np.asarray(shared.cov, np.float64), tuple(image_size),
+              tuple(int(k) for k in search))
+    seven = cached_tables("shared covariance", inputs, table)["table"]
     return {"table": seven.reshape((2,) + V.shape + (7,)), "origin": (0.0, 0.0, float(search[0])),
             "step": (float(TABLE_STEP_PX), float(TABLE_STEP_PX), float(TABLE_STEP_DISPARITY_PX))}
 

@@ -115,3 +115,26 @@ def test_one_way_flag_keeps_every_match_the_second_run_would_drop(pair, tmp_path
     common, i_one, i_two = np.intersect1d(key(one), key(two), return_indices=True)
     assert len(one) > len(two) and common.size > 0.97 * len(two)
     assert np.median(np.abs(one.points[i_one, 2] - two.points[i_two, 2])) < 1e-4
+
+
+def test_the_rig_tables_kept_between_commands_give_the_same_survey(pair, tmp_path, monkeypatch):
+    root, _ = pair
+    monkeypatch.setenv("JAXSTEREO_CACHE_DIR", "off")
+    assert _run(root, tmp_path / "off", "--water-level", "0.18") == 0
+    assert not (tmp_path / "off" / "tables").exists()
+    monkeypatch.setenv("JAXSTEREO_CACHE_DIR", str(tmp_path / "cache"))
+    tables = tmp_path / "cache" / "tables"
+    assert _run(root, tmp_path / "first", "--water-level", "0.18") == 0
+    kept = sorted(p.name.split("-")[0] for p in tables.glob("*.npz"))
+    # the rectification, its two map grids, the search range, the exact row offsets, the shared covariance
+    assert kept == ["disparity", "exact", "rectification", "rectification", "rectification", "shared"]
+    written = {p: p.stat().st_mtime_ns for p in tables.glob("*.npz")}
+    assert _run(root, tmp_path / "second", "--water-level", "0.18") == 0
+    assert {p: p.stat().st_mtime_ns for p in tables.glob("*.npz")}.keys() == written.keys()  # read, none added
+    surveys = [load_survey(tmp_path / name / "out" / "survey.npz") for name in ("off", "first", "second")]
+    for other in surveys[1:]:
+        for field in ("points", "cov", "pixels", "submerged"):
+            assert np.array_equal(getattr(other, field), getattr(surveys[0], field)), field
+    # Another water level is another rectification: its tables are computed and kept beside the first ones.
+    assert _run(root, tmp_path / "third", "--water-level", "0.17") == 0
+    assert len(list(tables.glob("*.npz"))) == 2 * len(written)
