@@ -168,8 +168,9 @@ def rectification_maps(rect: Rectification, camera: Camera, side: int) -> tuple[
 
     grid = cached_tables("rectification map grid", (rect, camera, side), coarse)
     real, ok = grid["real"], grid["ok"]
-    full = [_upsample(np.asarray(real[..., k], dtype=np.float64), h, w) for k in range(2)]
-    valid = _upsample(np.asarray(ok, dtype=np.float64), h, w) > 1.0 - 1e-9
+    A, B = _linear_upsampling(vs, h), _linear_upsampling(us, w)
+    full = [A @ np.asarray(real[..., k], dtype=np.float64) @ B.T for k in range(2)]
+    valid = (A @ np.asarray(ok, dtype=np.float64) @ B.T) > 1.0 - 1e-9
     maps = [np.where(valid, m, -1.0).astype(np.float32) for m in full]
     return maps[0], maps[1]
 
@@ -181,19 +182,15 @@ def _coarse_axis(n: int) -> np.ndarray:
     return np.arange(0, n - 1 + MAP_STEP, MAP_STEP, dtype=np.float64)
 
 
-def _upsample(coarse: np.ndarray, h: int, w: int) -> np.ndarray:
-    """Bilinear interpolation (h, w) of values on the grid every `MAP_STEP` pixels (`_coarse_axis` in v and u)."""
-    (kv, tv), (ku, tu) = _linear_weights(h, coarse.shape[0]), _linear_weights(w, coarse.shape[1])
-    rows = coarse[kv] * (1.0 - tv)[:, None] + coarse[kv + 1] * tv[:, None]  # (h, coarse columns)
-    return rows[:, ku] * (1.0 - tu) + rows[:, ku + 1] * tu
-
-
-def _linear_weights(n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """For pixels 0..n-1: the coarse node before each (n,) int, of `m` nodes every `MAP_STEP`, and the weight of
-    the node after it (n,)."""
+def _linear_upsampling(coarse: np.ndarray, n: int) -> np.ndarray:
+    """(n, len(coarse)) matrix of linear interpolation weights from the `coarse` positions to 0..n-1."""
     x = np.arange(n, dtype=np.float64)
-    k = np.minimum((x // MAP_STEP).astype(int), m - 2)
-    return k, (x - k * MAP_STEP) / MAP_STEP
+    k = np.minimum((x // MAP_STEP).astype(int), len(coarse) - 2)
+    t = (x - coarse[k]) / MAP_STEP
+    W = np.zeros((n, len(coarse)))
+    W[np.arange(n), k] = 1.0 - t
+    W[np.arange(n), k + 1] = t
+    return W
 
 
 def remap(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:

@@ -3,8 +3,9 @@
 Before it matches a pair, `reconstruct` computes from the rig, the water level and the height range alone:
 the rectification, the coarse grid its remap is interpolated from, the disparity search range, the exact
 epipolar curves' row offsets and the shared errors' covariance table. Together they are 0.1-0.3 s of
-arithmetic but, in a fresh process, 3-4 s of JAX tracing and loading compiled functions (a 1728x1152 pair,
-on 2 cores), so a survey campaign (one rig, one level, many pairs) would pay that on every command. With a folder set (`use_table_cache`; the command line sets one,
+arithmetic but, in a fresh process, about 2 s more of JAX tracing and loading compiled functions (a
+1728x1152 pair, on 2 cores), so a survey campaign (one rig, one level, many pairs) would pay that on every
+command. With a folder set (`use_table_cache`; the command line sets one,
 the library never does), each table is kept there under the SHA-256 of its inputs' values and of
 jaxstereo's own source, so that any change to either computes it again.
 
