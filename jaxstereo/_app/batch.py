@@ -1,7 +1,8 @@
 """`jaxstereo batch`: every pair of a campaign through reconstruct, grid and damage, unattended.
 
 Pairs run as jobs (`run_pair`, see `_batch_job`) in this process (compiled functions reused across
-pairs), in local worker processes (`workers > 1`, each compiles once), or on a Dask distributed cluster
+pairs), in local worker processes (`workers > 1`, each traces once and shares this process's caches of
+compiled functions and rig tables, if it keeps any: the command line does), or on a Dask distributed cluster
 (`scheduler`); reference stages first, then the others. Finished pairs are skipped (resumable); a
 failing pair is logged (`batch.log`, `summary.csv`) and skipped. Every file is written atomically.
 """
@@ -65,13 +66,20 @@ class _Inline:
 
 
 class _Processes:
-    """Jobs on `workers` local processes (spawned: JAX is not fork-safe)."""
+    """Jobs on `workers` local processes (spawned: JAX is not fork-safe), which keep their compiled functions
+    and rig tables where this process does (`_CACHE_SETTINGS`; nowhere if it keeps none)."""
 
     def __init__(self, workers: int):
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+        import jax
+
+        from .._stereo.table_cache import table_cache_folder
+
+        settings = ({name: getattr(jax.config, name) for name in _CACHE_SETTINGS}, table_cache_folder())
+        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_use_caches, initargs=settings)
 
     def run(self, jobs):
         from concurrent.futures import as_completed
@@ -82,6 +90,22 @@ class _Processes:
 
     def close(self):
         self.pool.shutdown(cancel_futures=True)
+
+
+_CACHE_SETTINGS = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+                   "jax_persistent_cache_min_entry_size_bytes")
+
+
+def _use_caches(jax_settings: dict, table_folder) -> None:
+    """A worker process's start: JAX's persistent-cache settings and the rig tables' folder of its parent."""
+    import jax
+
+    from .._stereo.table_cache import use_table_cache
+
+    if jax_settings.get("jax_compilation_cache_dir"):
+        for name, value in jax_settings.items():
+            jax.config.update(name, value)
+    use_table_cache(table_folder)
 
 
 class _Dask:

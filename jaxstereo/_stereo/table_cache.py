@@ -5,9 +5,9 @@ the rectification, the coarse grid its remap is interpolated from, the disparity
 epipolar curves' row offsets and the shared errors' covariance table. Together they are 0.1-0.3 s of
 arithmetic but, in a fresh process, about 2 s more of JAX tracing and loading compiled functions (a
 1728x1152 pair, on 2 cores), so a survey campaign (one rig, one level, many pairs) would pay that on every
-command. With a folder set (`use_table_cache`; the command line sets one,
-the library never does), each table is kept there under the SHA-256 of its inputs' values and of
-jaxstereo's own source, so that any change to either computes it again.
+command. With a folder set (`use_table_cache`; the command line sets one, the library never does), each
+table is kept there under the SHA-256 of its inputs' values and of jaxstereo's own source, so that any
+change to either computes it again.
 
 A file is written to a temporary name and renamed; one that cannot be read is computed again. The folder
 is kept under `MAX_FOLDER_BYTES`, the least recently used files removed first.
@@ -39,6 +39,11 @@ def use_table_cache(folder: str | os.PathLike | None) -> None:
     library's default)."""
     global _folder
     _folder = Path(folder) if folder is not None else None
+
+
+def table_cache_folder() -> Path | None:
+    """The folder `use_table_cache` set (None: none)."""
+    return _folder
 
 
 def cached_tables(name: str, inputs, compute: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

@@ -14,6 +14,7 @@ import pytest
 from jaxstereo._app.batch import run_batch
 from jaxstereo._app.cli import main
 from jaxstereo._app.images import write_image
+from jaxstereo._stereo.table_cache import use_table_cache
 from jaxstereo._surface.damage_report import stretch_damage
 from jaxstereo._surface.grid import grid_median, load_dem
 from jaxstereo._synthetic.campaign import SWL, write_synthetic_campaign
@@ -131,7 +132,12 @@ def test_interrupted_batch_resumes_without_redoing_finished_pairs(campaign, tmp_
 def test_workers_and_dask_cluster_give_the_same_results(campaign, tmp_path):
     _, manifest, _ = campaign
     serial = run_batch(manifest, tmp_path / "serial", log=lambda _: None)
-    parallel = run_batch(manifest, tmp_path / "workers", workers=2, log=lambda _: None)
+    use_table_cache(tmp_path / "tables")  # as the command line does: the workers keep their parent's folder
+    try:
+        parallel = run_batch(manifest, tmp_path / "workers", workers=2, log=lambda _: None)
+    finally:
+        use_table_cache(None)
+    assert len(list((tmp_path / "tables").glob("rectification-*.npz"))) >= 2
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         assert main(["batch", str(manifest), "-o", str(tmp_path / "dask"), "--scheduler", cluster.scheduler_address]) == 0
