@@ -3,6 +3,7 @@
 import json
 
 from jaxstereo._app.cli import main
+from jaxstereo._surface.damage import damage_level
 
 
 def test_demo_runs_end_to_end(tmp_path, capsys):
@@ -17,7 +18,14 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert 0 < s2 < s3
     sigma, (low, high) = summary["damage"]["III"]["sigma"]["S"], summary["damage"]["III"]["interval_95"]["S"]
     assert 0 <= low <= s3 - 2 * sigma + 1e-12 and high >= s3 + 2 * sigma - 1e-12  # the 95 % interval holds +- 2 sigma
-    assert f"[{low:.2f}, {high:.2f}]" in (tmp_path / "demo" / "report.md").read_text()
+    report = (tmp_path / "demo" / "report.md").read_text()
+    assert f"[{low:.2f}, {high:.2f}]" in report
+    # The report shows the tested stretch, the active zone and a level that is the one of the S it prints.
+    d3 = summary["damage"]["III"]
+    assert d3["damage_level"] == damage_level(s3, 2.0) and f"| {d3['damage_level']} |" in report
+    assert not d3["whole_surveyed_width"] and d3["stretch_y_m"][0] < d3["stretch_y_m"][1]
+    z0, z1 = d3["active_zone_z_m"]
+    assert "Tested stretch y" in report and f"active zone z {z0:.3f} to {z1:.3f} m" in report
     for name in ("report.md", "calibration_errors.png", "damage_vs_stage.png", "damage_stageIII/profile.png",
                  "surveys/stageIII.npz", "rig_wet.json"):
         assert (tmp_path / "demo" / name).stat().st_size > 0
