@@ -43,6 +43,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "_stereo.rectify": ("Rectification", "rectify"),
     "_stereo.refine": ("RefineResult", "find_correspondences", "refine_rig"),
     "_stereo.survey": ("Survey", "load_survey", "save_ply", "save_survey"),
+    "_stereo.table_cache": ("use_table_cache",),
     "_surface.damage": (
         "DemDamage", "ProfileDamage", "Zone", "damage_level", "dem_damage", "parse_slope", "profile_damage",
     ),
@@ -142,6 +143,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and editors
         save_ply as save_ply,
         save_survey as save_survey,
     )
+    from ._stereo.table_cache import use_table_cache as use_table_cache
     from ._surface.damage import (
         DemDamage as DemDamage,
         ProfileDamage as ProfileDamage,
