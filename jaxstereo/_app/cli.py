@@ -545,7 +545,7 @@ def main(argv=None) -> int:
 
     from .._stereo.table_cache import use_table_cache
 
-    _use_compilation_cache(jax)
+    _use_disk_caches(jax)
     try:
         with jax.enable_x64(True):  # geometry in float64, for this command only
             return handler(args)
@@ -556,7 +556,7 @@ def main(argv=None) -> int:
         use_table_cache(None)  # a caller that runs commands in its own process keeps the library's default
 
 
-def _use_compilation_cache(jax) -> None:
+def _use_disk_caches(jax) -> None:
     """Keep compiled functions (JAX's persistent cache, in jax/) and the tables computed from the rig alone
     (`table_cache.py`, in tables/) on disk between commands, so that a second command on this machine with
     the same rig compiles and tabulates nothing. The folder is $JAXSTEREO_CACHE_DIR, or jaxstereo under
@@ -569,7 +569,6 @@ def _use_compilation_cache(jax) -> None:
     root = os.environ.get("JAXSTEREO_CACHE_DIR") or os.path.join(
         os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxstereo")
     if root.lower() == "off":
-        use_table_cache(None)
         return
     folder = os.path.join(root, "jax")
     try:
