@@ -2,7 +2,8 @@
 
 Each pixel's ray is refracted exactly at the interface (vector Snell's law, as in the refraction core)
 and intersected with the bilinear heightfield: marched with steps that skip empty space (a dilated
-block-max map bounds the surface), then refined by bisection to far below 0.1 mm.
+block-max map bounds the surface), then the last step, which brackets the surface, is narrowed by bisection
+and solved by false position (Illinois) to far below a micrometre.
 """
 
 from __future__ import annotations
@@ -26,7 +27,9 @@ log = logging.getLogger("jaxstereo")
 
 # Water absorption per metre of path, red, green, blue (gives depth a blue-green cast).
 WATER_ATTENUATION = (2.0, 0.7, 0.5)
-BISECTION_STEPS = 22
+# Narrowing the bracketing step: halvings, then false-position (Illinois) steps.
+ROOT_BISECTIONS = 3
+ROOT_SECANTS = 5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,7 +39,8 @@ class RenderOptions:
     **Fields:** `fine_step_m` marching step near the surface (m); `supersample` odd number of rays
     per pixel side; `light` unit direction towards the light (world); `ambient` fraction of light that
     is ambient; `noise_dn` sensor noise standard deviation (8-bit digital numbers); `seed` for the noise;
-    `chunk` rays per compiled batch; `max_steps` cap on marching steps per ray.
+    `chunk` rays per compiled batch; `pool` rays of a batch traced at once (a finished ray's place goes to
+    the next one); `max_steps` cap on marching steps per ray.
     """
 
     fine_step_m: float = 1.0e-3
@@ -45,7 +49,8 @@ class RenderOptions:
     ambient: float = 0.3
     noise_dn: float = 1.0
     seed: int = 0
-    chunk: int = 1 << 16
+    chunk: int = 1 << 19
+    pool: int = 1 << 13
     max_steps: int = 2000
 
     def __post_init__(self):
@@ -53,6 +58,8 @@ class RenderOptions:
             raise JaxStereoError(f"supersample must be an odd positive integer, got {self.supersample}")
         if not self.fine_step_m > 0:
             raise JaxStereoError(f"fine_step_m must be positive, got {self.fine_step_m}")
+        if self.chunk < 1 or self.pool < 1:
+            raise JaxStereoError(f"chunk and pool must be positive ray counts, got {self.chunk} and {self.pool}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,53 +78,107 @@ class RenderedView:
     submerged: np.ndarray
 
 
-def _march(hf: Heightfield, origin, direction, s_max, fine_step, max_steps):
-    """First intersection of rays with the heightfield within `[0, s_max]`; returns `(s, hit)`."""
-    dxy = jnp.linalg.norm(direction[:, :2], axis=-1)
-    dz = direction[:, 2]
+def _march(hf: Heightfield, origin, direction, s_max, fine_step, max_steps, pool):
+    """First intersection of rays (n, 3) with the heightfield within `[0, s_max]`; returns `(s, hit)` (n,).
+
+    A ray is marched with steps that skip empty space; where a sample first lies under the surface, the last
+    step brackets it and is narrowed (`ROOT_BISECTIONS` halvings, then `ROOT_SECANTS` Illinois steps).
+    Rays need from a few samples to a few hundred, so they are traced by a pool of `pool` slots rather than
+    all at once: a slot whose ray is done (hit, past `s_max`, or `max_steps` samples without a hit) waits
+    until a quarter of the pool has, and then those slots take the next rays in line, so that most of each
+    iteration's work goes to rays that still need it. `s` is meaningful where `hit` is true.
+    """
+    n = origin.shape[0]
+    pool = min(pool, n)
     block_m = hf.block * hf.spacing
-    xy_limit = block_m / jnp.maximum(dxy, 1e-12)
-    z_limit_scale = 1.0 / jnp.maximum(-dz, 1e-12)
+    solve_steps = ROOT_BISECTIONS + ROOT_SECANTS
+
+    def refill(slots, next_ray, s_out, hit_out):
+        # Record the finished rays, then hand their slots (and the empty ones) the next rays in line.
+        at = jnp.where(slots["done"], slots["ray"], n)
+        s_out = s_out.at[at].set(slots["a"], mode="drop")
+        hit_out = hit_out.at[at].set(slots["k"] >= 0, mode="drop")
+        free = slots["done"] | (slots["ray"] >= n)
+        fresh = next_ray + jnp.cumsum(free) - 1
+        ray = jnp.where(free, jnp.where(fresh < n, fresh, n), slots["ray"])
+        r = jnp.minimum(ray, n - 1)
+        d = direction[r]
+        new = {
+            "ray": ray, "o": origin[r], "d": d, "end": jnp.where(ray < n, s_max[r], 0.0),
+            # The longest step that stays within one block horizontally, and 1 / rate of descent.
+            "xy_limit": block_m / jnp.maximum(jnp.linalg.norm(d[:, :2], axis=-1), 1e-12),
+            "inv_descent": jnp.where(d[:, 2] < 0, 1.0 / jnp.maximum(-d[:, 2], 1e-12), jnp.inf),
+            "a": jnp.zeros_like(slots["a"]), "b": jnp.zeros_like(slots["b"]),
+            "g_a": jnp.ones_like(slots["g_a"]), "g_b": jnp.ones_like(slots["g_b"]),
+            "k": jnp.full_like(slots["k"], -1), "side": jnp.zeros_like(slots["side"]),
+            "steps": jnp.zeros_like(slots["steps"]), "done": jnp.zeros_like(slots["done"]),
+        }
+        slots = {key: jnp.where(free.reshape(-1, *[1] * (v.ndim - 1)), new[key], v) for key, v in slots.items()}
+        return slots, jnp.minimum(next_ray + jnp.sum(free), n), s_out, hit_out
 
     def cond(state):
-        it, s, s_prev, active, hit = state
-        return (it < max_steps) & jnp.any(active)
+        slots, next_ray, _, _ = state
+        return jnp.any(~slots["done"] & (slots["ray"] < n)) | (next_ray < n)
 
     def body(state):
-        it, s, s_prev, active, hit = state
-        p = origin + s[:, None] * direction
+        slots, next_ray, s_out, hit_out = state
+        # Marching (k < 0): a is the current sample, b the previous one, g_b its height above the surface.
+        # Solving (k >= 0): [a, b] brackets the surface (g_a > 0 >= g_b), after k steps. A finished slot keeps
+        # its result (s in a; k >= 0 if hit) until its slot is refilled.
+        a, b, g_a, g_b, k, side = (slots[key] for key in ("a", "b", "g_a", "g_b", "k", "side"))
+        working = ~slots["done"] & (slots["ray"] < n)
+        marching = k < 0
+        fraction = jnp.where(g_a - g_b > 0, g_a / (g_a - g_b), 0.5)
+        fraction = jnp.where(k < ROOT_BISECTIONS, 0.5, jnp.clip(fraction, 0.0, 1.0))
+        t = jnp.where(marching, a, a + fraction * (b - a))
+        p = slots["o"] + t[:, None] * slots["d"]
         h, inside = hf.height_at(p[:, :2])
         below = inside & (p[:, 2] <= h)
-        new_hit = active & below
-        hit = hit | new_hit
-        bound = hf.block_max_at(p[:, :2])
-        gap = p[:, 2] - bound
-        safe = jnp.where(dz < 0, jnp.minimum(gap * z_limit_scale, xy_limit), xy_limit)
-        step = jnp.where(gap > 0, jnp.maximum(safe, fine_step), fine_step)
-        at_end = s >= s_max
-        active = active & ~new_hit & ~at_end
-        s_next = jnp.where(active, jnp.minimum(s + step, s_max), s)
-        s_prev = jnp.where(active, s, s_prev)
-        return it + 1, s_next, s_prev, active, hit
+        g = jnp.where(below, jnp.minimum(p[:, 2] - h, 0.0), jnp.maximum(p[:, 2] - h, 1e-12))
+        gap = p[:, 2] - hf.block_max_at(p[:, :2])
+        step = jnp.minimum(gap * slots["inv_descent"], slots["xy_limit"])
+        step = jnp.where(gap > 0, jnp.maximum(step, fine_step), fine_step)
+        # Marching: where a sample first lies below the surface, [previous, current] brackets it.
+        alive = slots["end"] > 0
+        found = marching & alive & below
+        missed = marching & ~found & (~alive | (a >= slots["end"]) | (slots["steps"] + 1 >= max_steps))
+        march_a = jnp.where(found, b, jnp.minimum(a + step, slots["end"]))
+        march_g_a = jnp.where(found, g_b, g_a)
+        # Solving: the new point replaces the end on its side; an end kept twice in a row has its g halved.
+        secant = k >= ROOT_BISECTIONS
+        solve_a = jnp.where(below, a, t)
+        solve_b = jnp.where(below, t, b)
+        solve_g_a = jnp.where(below, jnp.where(secant & (side > 0), 0.5 * g_a, g_a), g)
+        solve_g_b = jnp.where(below, g, jnp.where(secant & (side < 0), 0.5 * g_b, g_b))
+        k_next = jnp.where(found, 0, jnp.where(marching, k, k + 1))
+        located = ~marching & (k_next >= solve_steps)
+        update = {
+            "a": jnp.where(marching, jnp.where(missed, a, march_a), jnp.where(located, t, solve_a)),
+            "b": jnp.where(marching, a, solve_b),
+            "g_a": jnp.where(marching, march_g_a, solve_g_a),
+            "g_b": jnp.where(marching, g, solve_g_b),
+            "k": k_next,
+            "side": jnp.where(marching, 0, jnp.where(below, 1, -1)),
+            "steps": slots["steps"] + marching,
+            "done": missed | located,
+        }
+        slots = dict(slots, **{key: jnp.where(working, v, slots[key]) for key, v in update.items()})
+        idle = slots["done"] | (slots["ray"] >= n)
+        return jax.lax.cond(4 * jnp.sum(idle) >= pool, lambda state: refill(*state), lambda state: state,
+                            (slots, next_ray, s_out, hit_out))
 
-    n = origin.shape[0]
-    zeros = jnp.zeros(n, origin.dtype)
-    state = (0, zeros, zeros, s_max > 0, jnp.zeros(n, bool))
-    _, s, s_prev, _, hit = jax.lax.while_loop(cond, body, state)
-
-    def bisect(_, bracket):
-        lo, hi = bracket
-        mid = 0.5 * (lo + hi)
-        p = origin + mid[:, None] * direction
-        h, inside = hf.height_at(p[:, :2])
-        below = inside & (p[:, 2] <= h)
-        return jnp.where(below, lo, mid), jnp.where(below, mid, hi)
-
-    lo, hi = jax.lax.fori_loop(0, BISECTION_STEPS, bisect, (s_prev, s))
-    return 0.5 * (lo + hi), hit
+    zeros = jnp.zeros(pool, origin.dtype)
+    slots = {"ray": jnp.full(pool, n), "o": jnp.zeros((pool, 3), origin.dtype), "d": jnp.zeros((pool, 3), origin.dtype),
+             "end": zeros, "xy_limit": zeros, "inv_descent": zeros, "a": zeros, "b": zeros, "g_a": zeros, "g_b": zeros,
+             "k": jnp.zeros(pool, jnp.int32), "side": jnp.zeros(pool, jnp.int32), "steps": jnp.zeros(pool, jnp.int32),
+             "done": jnp.zeros(pool, bool)}
+    state = refill(slots, jnp.asarray(0), jnp.zeros(n, origin.dtype), jnp.zeros(n, bool))
+    state = jax.lax.while_loop(cond, body, state)
+    _, _, s, hit = refill(*state)
+    return s, hit
 
 
-def _trace(camera: Camera, hf: Heightfield, interface: Interface | None, pixels, fine_step, max_steps):
+def _trace(camera: Camera, hf: Heightfield, interface: Interface | None, pixels, fine_step, max_steps, pool):
     """Trace pixel rays (n, 2) to the surface: returns points (n, 3), hit (n,), submerged (n,), water path (n,)."""
     origin, d = camera.backproject(pixels)
     z_lo, z_hi = hf.z_range
@@ -135,7 +196,7 @@ def _trace(camera: Camera, hf: Heightfield, interface: Interface | None, pixels,
         reaches = jnp.isfinite(s_if) & (s_if > 0)
         s_air = jnp.where(reaches, jnp.clip(s_if - s0, 0.0, s_floor), s_floor)
     s_air = jnp.where(d[:, 2] < 0, s_air, 0.0)
-    s1, hit1 = _march(hf, start, d, s_air, fine_step, max_steps)
+    s1, hit1 = _march(hf, start, d, s_air, fine_step, max_steps, pool)
     p_air = start + s1[:, None] * d
     if interface is None:
         return p_air, hit1, jnp.zeros_like(hit1), jnp.zeros_like(s1)
@@ -144,7 +205,7 @@ def _trace(camera: Camera, hf: Heightfield, interface: Interface | None, pixels,
     d_w, ok = refract_directions(d, interface.normal, interface.n_air, interface.n_water)
     dzw = jnp.minimum(d_w[:, 2], -1e-12)
     s_w_max = jnp.where(~hit1 & ok & reaches & (d[:, 2] < 0), jnp.maximum((surface[:, 2] - z_bottom) / -dzw, 0.0), 0.0)
-    s2, hit2 = _march(hf, surface, d_w, s_w_max, fine_step, max_steps)
+    s2, hit2 = _march(hf, surface, d_w, s_w_max, fine_step, max_steps, pool)
     p_w = surface + s2[:, None] * d_w
     hit = hit1 | hit2
     points = jnp.where(hit1[:, None], p_air, p_w)
@@ -213,7 +274,7 @@ def _trace_pixels(camera: Camera, hf: Heightfield, interface, options: RenderOpt
     chunk_pixels = max(1, options.chunk // (ss * ss))
     light = np.asarray(options.light, dtype=np.float64)
     light = jnp.asarray(light / np.linalg.norm(light))
-    step_fn = _render_chunk_fn(ss, options.fine_step_m, options.max_steps, float(options.ambient))
+    step_fn = _render_chunk_fn(ss, options.fine_step_m, options.max_steps, float(options.ambient), options.pool)
     colour = np.zeros((n_pix, 3), np.float64)
     points = np.full((n_pix, 3), np.nan)
     hit = np.zeros(n_pix, bool)
@@ -243,13 +304,13 @@ def _trace_pixels(camera: Camera, hf: Heightfield, interface, options: RenderOpt
 _CHUNK_FNS: dict = {}
 
 
-def _render_chunk_fn(ss, fine_step, max_steps, ambient):
-    key = (ss, fine_step, max_steps, ambient)
+def _render_chunk_fn(ss, fine_step, max_steps, ambient, pool):
+    key = (ss, fine_step, max_steps, ambient, pool)
     if key not in _CHUNK_FNS:
 
         @jax.jit
         def fn(camera, hf, interface, pixels, light):
-            points, hit, submerged, water_path = _trace(camera, hf, interface, pixels, fine_step, max_steps)
+            points, hit, submerged, water_path = _trace(camera, hf, interface, pixels, fine_step, max_steps, pool)
             colour = _shade(hf, points, hit, water_path, light, ambient)
             return colour, points, hit, submerged
 
