@@ -60,34 +60,37 @@ def _scan(grey: np.ndarray, p: np.ndarray, u: np.ndarray, q: np.ndarray, half_wi
     return profile, lo, line, a_idx, b_idx, across
 
 
-def _crossing(grey: np.ndarray, p: np.ndarray, u: np.ndarray, s: float, other: np.ndarray, far: np.ndarray,
-              half_width: int) -> tuple[float, float, float] | None:
-    """Where the edge leaving `p` along unit `u` crosses the pixel row (or column) at distance `s` along it.
+def _crossings(grey: np.ndarray, p: np.ndarray, u: np.ndarray, s: np.ndarray, other: np.ndarray, far: np.ndarray,
+               half_width: int) -> np.ndarray:
+    """Where the edge leaving `p` along unit `u` crosses the pixel rows (or columns) at distances `s` (m,) along it.
 
     `other` is the direction of the corner's other edge; `far` the neighbouring corner at the half-edge's end,
-    whose own other edge crosses the same rows. Returns (x, y, contrast) or None when the scan would see
-    another edge, leave the image or find no step.
+    whose own other edge crosses the same rows. Returns (x, y, contrast) rows (k, 3), in the order of `s`, for
+    the distances whose scan sees one clean step: not another edge, inside the image, with contrast.
     """
-    scanned = _scan(grey, p, u, p + s * u, half_width)
-    if scanned is None:
-        return None
-    profile, lo, line, a_idx, b_idx, across = scanned
-    for start in (p, far):  # the corner's other edge and the far corner's, where they cross this row
-        if abs(other[b_idx]) > 1e-9:
+    scan_rows = abs(u[1]) >= abs(u[0])
+    a_idx, b_idx = (0, 1) if scan_rows else (1, 0)  # a: the coordinate scanned across, b: the row's own
+    line = np.round(p[b_idx] + s * u[b_idx])
+    across = p[a_idx] + (line - p[b_idx]) * u[a_idx] / u[b_idx]
+    lo = np.floor(across).astype(np.int64) - half_width
+    ok = (lo >= 0) & (lo + 2 * half_width + 1 < grey.shape[b_idx]) & (line >= 0) & (line < grey.shape[1 - b_idx])
+    if abs(other[b_idx]) > 1e-9:
+        for start in (p, far):  # the corner's other edge and the far corner's, where they cross these rows
             where = start[a_idx] + (line - start[b_idx]) * other[a_idx] / other[b_idx]
-            if abs(where - across) < half_width + 2:
-                return None
-    first, last = profile[:2].mean(), profile[-2:].mean()
-    contrast = abs(last - first)
-    if contrast == 0:
-        return None
-    share = (profile - last) / (first - last)  # each pixel's share of the first side
-    if share.min() < -0.25 or share.max() > 1.25:  # a texture or another edge, not one clean step
-        return None
-    position = lo - 0.5 + float(share.sum())
-    point = [0.0, 0.0]
-    point[a_idx], point[b_idx] = position, float(line)
-    return point[0], point[1], contrast
+            ok &= ~(np.abs(where - across) < half_width + 2)
+    line, lo, across = line[ok].astype(np.int64), lo[ok], across[ok]
+    index = lo[:, None] + np.arange(2 * half_width + 2)
+    profile = grey[line[:, None], index] if scan_rows else grey[index, line[:, None]]
+    first, last = profile[:, :2].mean(axis=1), profile[:, -2:].mean(axis=1)
+    contrast = np.abs(last - first)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a flat profile: no step, dropped below
+        share = (profile - last[:, None]) / (first - last)[:, None]  # each pixel's share of the first side
+        # One clean step: not flat, and no texture or other edge (shares outside [-0.25, 1.25]).
+        clean = (contrast != 0) & (share.min(axis=1) >= -0.25) & (share.max(axis=1) <= 1.25)
+        position = lo - 0.5 + share.sum(axis=1)
+    out = np.empty((line.size, 3))
+    out[:, a_idx], out[:, b_idx], out[:, 2] = position, line, contrast
+    return out[clean]
 
 
 def _edge_line(grey, p, vectors, other_axis_dir, half_width):
@@ -99,14 +102,11 @@ def _edge_line(grey, p, vectors, other_axis_dir, half_width):
     samples = []
     for v in vectors:
         length = float(np.linalg.norm(v))
-        u = v / length
-        for s in np.arange(half_width + 2.5, length - half_width - 2.5, 1.0):
-            hit = _crossing(grey, p, u, s, other_axis_dir, p + v, half_width)
-            if hit is not None:
-                samples.append(hit)
-    if len(samples) < MIN_SAMPLES:
+        s = np.arange(half_width + 2.5, length - half_width - 2.5, 1.0)
+        samples.append(_crossings(grey, p, v / length, s, other_axis_dir, p + v, half_width))
+    pts = np.concatenate(samples)
+    if len(pts) < MIN_SAMPLES:
         return None
-    pts = np.asarray(samples)
     keep = pts[:, 2] >= 0.5 * np.median(pts[:, 2])  # crossings with the board's own contrast
     rel = pts[keep, :2] - p
     t, n = rel @ direction, rel @ normal

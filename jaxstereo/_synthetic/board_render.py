@@ -6,12 +6,12 @@ import jax
 import numpy as np
 
 from .._calibration.boards import BoardSpec
-from .._geometry.camera import Camera
+from .._geometry.camera import Camera, undistort_normalized
 from .._geometry.errors import JaxStereoError
 from .._geometry.pose import Pose, so3_exp
 from .._geometry.precision import float64
 
-_backproject = jax.jit(lambda camera, pixels: camera.backproject(pixels))
+_undistorted = jax.jit(lambda camera, pixels: undistort_normalized(camera.pixels_to_normalized(pixels), camera.dist))
 
 
 @float64
@@ -35,29 +35,32 @@ def render_board(
     texture = board.texture() if board.kind == "charuco" else None
     R_bw = np.asarray(board_to_world.R)
     t_bw = np.asarray(board_to_world.t)
-    normal_w = R_bw[:, 2]
-    origin_plane = t_bw
-    out = np.empty((h, w))
-    rows_per_chunk = max(1, 200_000 // (w * supersample * supersample))
-    ox, oy = np.meshgrid(offsets, offsets)
-    sub = np.stack([ox.ravel(), oy.ravel()], axis=-1)
+    # Undistorted normalised coordinates at every pixel centre and one pixel beyond the image (h + 2, w + 2, 2):
+    # a sub-pixel ray's are interpolated from them (exact without distortion, and the distortion is smooth).
+    u, v = np.meshgrid(np.arange(-1.0, w + 1.0), np.arange(-1.0, h + 1.0))
+    grid = np.asarray(_undistorted(camera, np.stack([u.ravel(), v.ravel()], axis=-1))).reshape(h + 2, w + 2, 2)
+    gx, gy = np.ascontiguousarray(grid[..., 0]), np.ascontiguousarray(grid[..., 1])
+    # In the board frame a ray is q + s * e, with e = (x, y, 1) @ M for undistorted normalised (x, y).
+    M = np.asarray(camera.pose.R) @ R_bw
+    q = (np.asarray(camera.center) - t_bw) @ R_bw
+    out = np.zeros((h, w))
+    rows_per_chunk = max(1, 200_000 // w)
     for r0 in range(0, h, rows_per_chunk):
-        r1 = min(h, r0 + rows_per_chunk)
-        u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(r0, r1, dtype=np.float64))
-        pix = np.stack([u.ravel(), v.ravel()], axis=-1)[:, None, :] + sub[None]
-        pix = pix.reshape(-1, 2)
-        if pix.shape[0] < rows_per_chunk * w * supersample**2:  # keep one compiled shape
-            pix = np.concatenate([pix, np.zeros((rows_per_chunk * w * supersample**2 - pix.shape[0], 2))])
-        o, d = (np.asarray(a) for a in _backproject(camera, pix))
-        n = (r1 - r0) * w * supersample**2
-        o, d = o[:n], d[:n]
-        denom = d @ normal_w
-        s = ((origin_plane - o) @ normal_w) / np.where(denom == 0, np.nan, denom)
-        p = o + s[:, None] * d
-        xb = (p - t_bw) @ R_bw  # board frame
-        value = board.reflectance(xb[:, :2], texture)
-        value = np.where(np.isfinite(value) & (s > 0), value, background)
-        out[r0:r1] = value.reshape(r1 - r0, w, supersample**2).mean(axis=-1)
+        m = min(h, r0 + rows_per_chunk) - r0
+        for oy in offsets:
+            i, fy = r0 + 1 + int(np.floor(oy)), oy - np.floor(oy)
+            for ox in offsets:
+                j, fx = 1 + int(np.floor(ox)), ox - np.floor(ox)
+                x, y = (((1 - fx) * g[i:i + m, j:j + w] + fx * g[i:i + m, j + 1:j + 1 + w]) * (1 - fy)
+                        + ((1 - fx) * g[i + 1:i + 1 + m, j:j + w] + fx * g[i + 1:i + 1 + m, j + 1:j + 1 + w]) * fy
+                        for g in (gx, gy))
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    s = -q[2] / (x * M[0, 2] + y * M[1, 2] + M[2, 2])
+                    xb = np.stack([q[0] + s * (x * M[0, 0] + y * M[1, 0] + M[2, 0]),
+                                   q[1] + s * (x * M[0, 1] + y * M[1, 1] + M[2, 1])], axis=-1)
+                value = board.reflectance(xb, texture)
+                out[r0:r0 + m] += np.where(np.isfinite(value) & (s > 0), value, background)
+    out /= supersample**2
     srgb = out ** (1 / 2.2) * 255.0
     if noise_dn > 0:
         srgb = srgb + np.random.default_rng(seed).normal(0.0, noise_dn, srgb.shape)
