@@ -226,8 +226,13 @@ def _place_units(spec: Breakwater, rng, y_min, y_max):
     return centers, axes, _random_rotations(rng, n), np.asarray(layers)
 
 
-def _rasterise_units(z, labels, x0, y0, spacing, centers, axes, rotations, ids):
-    """Raise `z` (ny, nx) to the upper surface of each ellipsoidal unit; record the unit id in `labels`."""
+def _rasterise_units(z, labels, x0, y0, spacing, centers, axes, rotations, ids, units_per_batch=64):
+    """Raise `z` (ny, nx) to the upper surface of each ellipsoidal unit; record the unit id in `labels`.
+
+    Units go `units_per_batch` at a time (a window of nodes around each, as wide as the largest unit), so that
+    the arrays of a batch stay small; within a batch the highest surface over a node wins, then it replaces
+    the node's height where it is higher.
+    """
     if len(ids) == 0:
         return
     ny, nx = z.shape
@@ -235,34 +240,39 @@ def _rasterise_units(z, labels, x0, y0, spacing, centers, axes, rotations, ids):
     half = int(np.ceil(radius / spacing)) + 1
     offs = np.arange(-half, half + 1)
     oj, oi = np.meshgrid(offs, offs)
-    c = centers[ids]
-    A = np.einsum("nij,nj,nkj->nik", rotations[ids], 1.0 / axes[ids] ** 2, rotations[ids])
-    cj = np.round((c[:, 0] - x0) / spacing).astype(int)
-    ci = np.round((c[:, 1] - y0) / spacing).astype(int)
-    J = cj[:, None, None] + oj[None]
-    I = ci[:, None, None] + oi[None]
-    dx = x0 + J * spacing - c[:, 0, None, None]
-    dy = y0 + I * spacing - c[:, 1, None, None]
-    azz = A[:, 2, 2, None, None]
-    b = A[:, 0, 2, None, None] * dx + A[:, 1, 2, None, None] * dy
-    cc = A[:, 0, 0, None, None] * dx * dx + 2 * A[:, 0, 1, None, None] * dx * dy + A[:, 1, 1, None, None] * dy * dy - 1
-    disc = b * b - azz * cc
-    top = c[:, 2, None, None] + (-b + np.sqrt(np.maximum(disc, 0.0))) / azz
-    ok = (disc > 0) & (I >= 0) & (I < ny) & (J >= 0) & (J < nx)
-    flat = (I * nx + J)[ok]
-    vals = top[ok]
-    who = np.broadcast_to(np.asarray(ids)[:, None, None], ok.shape)[ok]
-    order = np.argsort(vals, kind="stable")
     zf = z.reshape(-1)
     lf = labels.reshape(-1)
-    # Ascending order: the highest surface over a node is written last and wins.
-    cand = np.full(zf.shape, -np.inf)
-    cand[flat[order]] = vals[order]
-    owner = np.full(zf.shape, -1)
-    owner[flat[order]] = who[order]
-    wins = cand > zf
-    zf[wins] = cand[wins]
-    lf[wins] = owner[wins]
+    ids = np.asarray(ids)
+    for start in range(0, len(ids), units_per_batch):
+        batch = ids[start:start + units_per_batch]
+        c = centers[batch]
+        A = np.einsum("nij,nj,nkj->nik", rotations[batch], 1.0 / axes[batch] ** 2, rotations[batch])
+        cj = np.round((c[:, 0] - x0) / spacing).astype(int)
+        ci = np.round((c[:, 1] - y0) / spacing).astype(int)
+        J = cj[:, None, None] + oj[None]
+        I = ci[:, None, None] + oi[None]
+        dx = x0 + J * spacing - c[:, 0, None, None]
+        dy = y0 + I * spacing - c[:, 1, None, None]
+        azz = A[:, 2, 2, None, None]
+        b = A[:, 0, 2, None, None] * dx + A[:, 1, 2, None, None] * dy
+        cc = (A[:, 0, 0, None, None] * dx * dx + 2 * A[:, 0, 1, None, None] * dx * dy
+              + A[:, 1, 1, None, None] * dy * dy - 1)
+        disc = b * b - azz * cc
+        ok = (disc > 0) & (I >= 0) & (I < ny) & (J >= 0) & (J < nx)
+        top = (np.broadcast_to(c[:, 2, None, None], ok.shape)[ok]
+               + (-b[ok] + np.sqrt(disc[ok])) / np.broadcast_to(azz, ok.shape)[ok])
+        flat = (I * nx + J)[ok]
+        who = np.broadcast_to(batch[:, None, None], ok.shape)[ok]
+        # Ascending order: the highest surface over a node is written last and wins.
+        order = np.argsort(top, kind="stable")
+        nodes, tops, owners = flat[order], top[order], who[order]
+        best = np.full(zf.shape, -np.inf)
+        best[nodes] = tops
+        owner = np.full(zf.shape, -1)
+        owner[nodes] = owners
+        wins = nodes[best[nodes] > zf[nodes]]  # a node can appear more than once: the same value each time
+        zf[wins] = best[wins]
+        lf[wins] = owner[wins]
 
 
 def _build_breakwater(spec: Breakwater, x, y, rng) -> Scene:
