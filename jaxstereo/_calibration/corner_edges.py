@@ -62,7 +62,8 @@ def _scan(grey: np.ndarray, p: np.ndarray, u: np.ndarray, q: np.ndarray, half_wi
 
 def _crossings(grey: np.ndarray, p: np.ndarray, u: np.ndarray, s: np.ndarray, other: np.ndarray, far: np.ndarray,
                half_width: int) -> np.ndarray:
-    """Where the edge leaving `p` along unit `u` crosses the pixel rows (or columns) at distances `s` (m,) along it.
+    """Where the edge leaving `p` along unit `u` crosses the pixel rows (or columns) at distances `s` (n,) along it,
+    in pixels.
 
     `other` is the direction of the corner's other edge; `far` the neighbouring corner at the half-edge's end,
     whose own other edge crosses the same rows. Returns (x, y, contrast) rows (k, 3), in the order of `s`, for

@@ -260,7 +260,7 @@ def render_view(
 
 
 def _trace_pixels(camera: Camera, hf: Heightfield, interface, options: RenderOptions, progress: bool):
-    """Trace every pixel in fixed-size chunks (one compilation), `supersample`^2 rays each.
+    """Trace every pixel in fixed-size chunks (one compilation per chunk size), `supersample`^2 rays each.
 
     **Returns:** per pixel (row-major, w * h): linear colour (n, 3) averaged over the sub-rays, and the
     centre ray's surface point (n, 3) world metres (NaN where it hit nothing), hit and submerged flags (n,).
@@ -272,7 +272,9 @@ def _trace_pixels(camera: Camera, hf: Heightfield, interface, options: RenderOpt
     centre = ss * ss // 2  # the middle sub-ray is the pixel centre (odd supersampling)
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     n_pix = w * h
-    chunk_pixels = max(1, options.chunk // (ss * ss))
+    # Batches of `chunk` rays, or fewer for a small image: its pixel count rounded up to a power of two, so that
+    # a small image is not padded to a whole batch and few batch shapes are compiled.
+    chunk_pixels = max(1, min(options.chunk // (ss * ss), 1 << int(np.ceil(np.log2(n_pix)))))
     light = np.asarray(options.light, dtype=np.float64)
     light = jnp.asarray(light / np.linalg.norm(light))
     step_fn = _render_chunk_fn(ss, options.fine_step_m, options.max_steps, float(options.ambient), options.pool)
