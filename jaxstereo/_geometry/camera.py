@@ -14,6 +14,7 @@ from .errors import JaxStereoError, check_shape, is_concrete
 from .pose import Pose
 from .precision import as_float64, float64
 from .types import Coefficients, Matrix3, Scalar
+from .vectors import apply3, unit3
 
 N_DIST = 8
 UNDISTORT_ITERATIONS = 12
@@ -206,8 +207,7 @@ class Camera(eqx.Module):
         """
         xy = undistort_normalized(self.pixels_to_normalized(pixels), self.dist)
         d_cam = jnp.concatenate([xy, jnp.ones_like(xy[..., :1])], axis=-1)
-        d_world = d_cam @ self.pose.R
-        d_world = d_world / jnp.linalg.norm(d_world, axis=-1, keepdims=True)
+        d_world = unit3(apply3(self.pose.R.T, d_cam))
         origin = jnp.broadcast_to(self.center, d_world.shape)
         return origin, d_world
 

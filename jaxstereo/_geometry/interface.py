@@ -10,6 +10,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .errors import JaxStereoError, is_concrete
 from .precision import as_float64, float64
 from .types import Scalar, Vector3
+from .vectors import dot3
 
 N_AIR = 1.000
 N_WATER = 1.333
@@ -79,7 +80,7 @@ class Interface(eqx.Module):
     @float64
     def height_of(self, points_world: Float[ArrayLike, "*#batch 3"]) -> Float[Array, "*#batch"]:
         """Signed distance (metres) of points above the plane: positive in air, negative under water."""
-        return points_world @ self.normal - self.level
+        return dot3(jnp.asarray(points_world), self.normal) - self.level
 
     @float64
     def with_level(self, level: Scalar) -> "Interface":

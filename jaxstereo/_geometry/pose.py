@@ -10,6 +10,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .errors import JaxStereoError, is_concrete
 from .precision import as_float64, float64
 from .types import Matrix3, Vector3
+from .vectors import apply3
 
 
 def _skew(v: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
@@ -139,12 +140,12 @@ class Pose(eqx.Module):
     @float64
     def apply(self, points_world: Float[ArrayLike, "*#batch 3"]) -> Float[Array, "*#batch 3"]:
         """World points (..., 3) to camera coordinates (..., 3)."""
-        return points_world @ self.R.T + self.t
+        return apply3(self.R, jnp.asarray(points_world)) + self.t
 
     @float64
     def inverse_apply(self, points_cam: Float[ArrayLike, "*#batch 3"]) -> Float[Array, "*#batch 3"]:
         """Camera-frame points (..., 3) to world coordinates (..., 3)."""
-        return (points_cam - self.t) @ self.R
+        return apply3(self.R.T, points_cam - self.t)
 
     @float64
     def compose(self, other: "Pose") -> "Pose":

@@ -19,13 +19,11 @@ from .errors import check_shape
 from .interface import Interface, check_camera_above, check_water_denser
 from .precision import float64
 from .types import Scalar
+from .vectors import dot3
 
 NEWTON_ITERATIONS = 4
 _TINY = 1e-300
 
-
-def _dot(a, b):
-    return jnp.sum(a * b, axis=-1)
 
 
 @float64
@@ -43,7 +41,7 @@ def refract_directions(
     **Returns:** `(transmitted, ok)`: unit transmitted directions (..., 3), and `ok` (...,) false where
     the ray suffers total internal reflection (its direction is then the reflected one, never NaN).
     """
-    cos_i = _dot(directions, normal)
+    cos_i = dot3(directions, normal)
     # Orient the normal against the incident ray.
     sign = jnp.where(cos_i > 0, -1.0, 1.0)
     nrm = normal * sign[..., None]
@@ -67,9 +65,9 @@ def intersect_plane(
     **Returns:** `(points, s)`: intersection points (..., 3) and ray parameters (...,) (metres for unit
     directions); `s` is `inf` for rays parallel to the plane and negative for planes behind the origin.
     """
-    denom = _dot(directions, normal)
+    denom = dot3(directions, normal)
     safe = jnp.where(denom == 0, 1.0, denom)
-    s = jnp.where(denom == 0, jnp.inf, (level - _dot(origins, normal)) / safe)
+    s = jnp.where(denom == 0, jnp.inf, (level - dot3(origins, normal)) / safe)
     s_finite = jnp.where(jnp.isfinite(s), s, 0.0)
     return origins + s_finite[..., None] * directions, s
 
@@ -165,12 +163,12 @@ def _refraction_points_checked(centers, points_world, interface: Interface, iter
     `camera height + point depth + horizontal distance` (4e-10 in float64) counts as converged.
     """
     nrm = interface.normal
-    dc = _dot(centers, nrm) - interface.level  # camera height above the plane
-    dp = interface.level - _dot(points_world, nrm)  # point depth below the plane
+    dc = dot3(centers, nrm) - interface.level  # camera height above the plane
+    dp = interface.level - dot3(points_world, nrm)  # point depth below the plane
     foot_c = centers - dc[..., None] * nrm
     foot_p = points_world + dp[..., None] * nrm
     v = foot_p - foot_c
-    r2 = _dot(v, v)
+    r2 = dot3(v, v)
     r_safe = jnp.sqrt(jnp.where(r2 > 0, r2, 1.0))
     r = jnp.where(r2 > 0, r_safe, 0.0)
     u = v / r_safe[..., None]

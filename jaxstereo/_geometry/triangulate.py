@@ -6,6 +6,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .precision import float64
+from .vectors import dot3, norm3
 
 
 @float64
@@ -23,9 +24,9 @@ def triangulate_rays(
     segment between the two lines (zero for rays that meet). Parallel rays give `gap = inf`.
     """
     w = origin_a - origin_b
-    b = jnp.sum(direction_a * direction_b, axis=-1)
-    d = jnp.sum(direction_a * w, axis=-1)
-    e = jnp.sum(direction_b * w, axis=-1)
+    b = dot3(direction_a, direction_b)
+    d = dot3(direction_a, w)
+    e = dot3(direction_b, w)
     denom = 1.0 - b * b
     parallel = denom <= 1e-15
     safe = jnp.where(parallel, 1.0, denom)
@@ -33,5 +34,5 @@ def triangulate_rays(
     sb = (e - b * d) / safe
     pa = origin_a + sa[..., None] * direction_a
     pb = origin_b + sb[..., None] * direction_b
-    gap = jnp.where(parallel, jnp.inf, jnp.linalg.norm(pa - pb, axis=-1))
+    gap = jnp.where(parallel, jnp.inf, norm3(pa - pb))
     return 0.5 * (pa + pb), gap

@@ -18,6 +18,7 @@ from .._geometry.camera import Camera
 from .._geometry.interface import Interface
 from .._geometry.refraction import intersect_plane, refract_directions, refraction_points
 from .._geometry.triangulate import triangulate_rays
+from .._geometry.vectors import apply3
 from .rectify import Rectification, rectified_rays
 from .table_cache import cached_tables
 
@@ -25,7 +26,7 @@ from .table_cache import cached_tables
 def _rectified_pixel(rect: Rectification, side: int, surface: Float[ArrayLike, "*b 3"], camera: Camera) -> Float[Array, "*b 2"]:
     """Rectified pixel of a real ray that reaches the interface at `surface` (water) or points at it (air)."""
     origin = rect.centers[side] if rect.mode == "water" else camera.center
-    p = ((surface - origin) @ rect.R.T) @ rect.K.T
+    p = apply3(rect.K @ rect.R, surface - origin)
     return p[..., :2] / p[..., 2:3]
 
 

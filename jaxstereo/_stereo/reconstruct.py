@@ -31,6 +31,7 @@ from .._geometry.interface import Interface, check_camera_above
 from .._geometry.precision import float64
 from .._geometry.refraction import intersect_plane
 from .._geometry.triangulate import triangulate_rays
+from .._geometry.vectors import norm3
 from .epipolar import disparity_bounds, exact_row_offset, triangulate_exact
 from .matching import MatchOptions, Subpixel, disparity_search_range, refine_disparity, sgbm_disparity
 from .photometric import MAX_RESIDUAL_RATIO, photometric_outliers
@@ -207,7 +208,7 @@ def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera,
     """
     if not with_jacobian:
         points, gap, submerged, ok = _triangulate_model(rect, left_cam, right_cam, interface, model, rl, rr)
-        distance = jnp.linalg.norm(points - left_cam.center, axis=-1)
+        distance = norm3(points - left_cam.center)
         return points, gap, submerged, ok, distance, jnp.zeros_like(points)
 
     def points_of(right_pixels):
@@ -216,7 +217,7 @@ def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera,
 
     tangent = jnp.zeros_like(rr).at[:, 0].set(-1.0)  # a larger disparity moves the right pixel left
     _, dpoint_dd, (points, gap, submerged, ok) = jax.jvp(points_of, (rr,), (tangent,), has_aux=True)
-    distance = jnp.linalg.norm(points - left_cam.center, axis=-1)
+    distance = norm3(points - left_cam.center)
     return points, gap, submerged, ok, distance, dpoint_dd
 
 

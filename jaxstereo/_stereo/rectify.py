@@ -20,6 +20,7 @@ from .._geometry.errors import JaxStereoError
 from .._geometry.first_order import _virtual_camera
 from .._geometry.interface import Interface, check_camera_above
 from .._geometry.refraction import intersect_plane
+from .._geometry.vectors import apply3, unit3
 from .table_cache import cached_tables
 
 
@@ -123,15 +124,13 @@ def rectified_rays(rect: Rectification, camera: Camera, side: int, pixels):
     """
     K_inv = jnp.linalg.inv(rect.K)
     hom = jnp.concatenate([pixels, jnp.ones_like(pixels[..., :1])], axis=-1)
-    d = (hom @ K_inv.T) @ rect.R
-    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+    d = unit3(apply3(rect.R.T @ K_inv, hom))
     origin = jnp.broadcast_to(camera.center, d.shape)
     if rect.mode == "air":
         return origin, d, origin
     itf = rect.interface
     hit, _ = intersect_plane(jnp.broadcast_to(rect.centers[side], d.shape), d, itf.normal, itf.level)
-    real = hit - origin
-    return origin, real / jnp.linalg.norm(real, axis=-1, keepdims=True), hit
+    return origin, unit3(hit - origin), hit
 
 
 def real_to_rectified(rect: Rectification, camera: Camera, side: int, pixels):
