@@ -23,6 +23,7 @@ from .pose import Pose
 from .precision import float64
 from .refraction import intersect_plane
 from .types import Scalar
+from .vectors import inverse3
 
 
 @float64
@@ -73,7 +74,7 @@ def first_order_homography(camera: Camera, interface: Interface) -> Float[Array,
     """
     check_camera_above(camera.center, interface)
     virtual = _virtual_camera(camera, interface)
-    H = _plane_to_image(virtual, interface) @ jnp.linalg.inv(_plane_to_image(camera, interface))
+    H = _plane_to_image(virtual, interface) @ inverse3(_plane_to_image(camera, interface))
     return H / H[2, 2]
 
 

@@ -28,3 +28,11 @@ def unit3(a):
 def apply3(matrix, a):
     """`a @ matrix.T` for a (3, 3) matrix and (..., 3) vectors: each vector times `matrix`, shape (..., 3)."""
     return a[..., 0:1] * matrix[:, 0] + a[..., 1:2] * matrix[:, 1] + a[..., 2:3] * matrix[:, 2]
+
+
+def inverse3(matrix):
+    """Inverse of a (3, 3) matrix from its adjugate: no LAPACK call, whose first use in a process imports
+    scipy.linalg (a fifth of a second of a fresh command) and costs a library call of its own on CPU."""
+    cols = [matrix[:, 0], matrix[:, 1], matrix[:, 2]]
+    rows = [jnp.cross(cols[1], cols[2]), jnp.cross(cols[2], cols[0]), jnp.cross(cols[0], cols[1])]
+    return jnp.stack(rows) / jnp.dot(cols[0], rows[0])

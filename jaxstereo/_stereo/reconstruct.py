@@ -21,7 +21,6 @@ import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import ndimage
 
 from .._calibration.rig import Rig, rig_to_dict
 from .._geometry.camera import Camera
@@ -254,8 +253,33 @@ def _row_offsets(rect, rig, interface, disparity, search):
     coords = np.stack([v / OFFSET_GRID_PX, u / OFFSET_GRID_PX,
                        (disparity[v, u] - search[0]) / OFFSET_GRID_DISPARITY_PX])
     offset = np.full(disparity.shape, np.nan, np.float32)
-    offset[v, u] = ndimage.map_coordinates(table, coords, order=1, mode="nearest")
+    offset[v, u] = _trilinear(table, coords)
     return offset
+
+
+def _trilinear(table: np.ndarray, coords: np.ndarray) -> np.ndarray:
+    """Trilinear interpolation of `table` (n0, n1, n2) at fractional indices `coords` (3, k), clamped at the
+    table's edges, (k,) float32. (scipy's `map_coordinates(order=1, mode="nearest")`, without importing
+    scipy.ndimage: a third of a second of a fresh process.)"""
+    strides = (table.shape[1] * table.shape[2], table.shape[2], 1)
+    base = np.zeros(coords.shape[1], np.intp)
+    fractions, steps = [], []
+    for axis, n in enumerate(table.shape):
+        x = np.clip(coords[axis], 0.0, n - 1.0)
+        i = np.minimum(x.astype(np.intp), max(n - 2, 0))  # x >= 0: truncation is the floor
+        base += i * strides[axis]
+        fractions.append((x - i).astype(np.float32))
+        steps.append(strides[axis] if n > 1 else 0)
+    flat = table.astype(np.float32).ravel()
+
+    def along(axis: int, offset):
+        """The table interpolated along axes `axis`.. at the corner `offset` of the axes before it."""
+        if axis == 3:
+            return flat[base + offset] if offset else flat[base]
+        low, high = along(axis + 1, offset), along(axis + 1, offset + steps[axis])
+        return low + fractions[axis] * (high - low)
+
+    return along(0, 0)
 
 
 @float64

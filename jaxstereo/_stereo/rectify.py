@@ -20,7 +20,7 @@ from .._geometry.errors import JaxStereoError
 from .._geometry.first_order import _virtual_camera
 from .._geometry.interface import Interface, check_camera_above
 from .._geometry.refraction import intersect_plane
-from .._geometry.vectors import apply3, unit3
+from .._geometry.vectors import apply3, inverse3, unit3
 from .table_cache import cached_tables
 
 
@@ -104,7 +104,7 @@ def rectified_to_real(rect: Rectification, camera: Camera, side: int, pixels):
     Air: a pure rotation about the camera centre. Water: the virtual ray is intersected with the
     interface plane and that point projected by the real camera (with its distortion).
     """
-    K_inv = jnp.linalg.inv(rect.K)
+    K_inv = inverse3(rect.K)
     hom = jnp.concatenate([pixels, jnp.ones_like(pixels[..., :1])], axis=-1)
     d = (hom @ K_inv.T) @ rect.R
     center = rect.centers[side]
@@ -122,7 +122,7 @@ def rectified_rays(rect: Rectification, camera: Camera, side: int, pixels):
     directions of the real rays in the world (..., 3), and for "water" the points where the rays
     cross the interface (..., 3) (for "air": the same as `origin`).
     """
-    K_inv = jnp.linalg.inv(rect.K)
+    K_inv = inverse3(rect.K)
     hom = jnp.concatenate([pixels, jnp.ones_like(pixels[..., :1])], axis=-1)
     d = unit3(apply3(rect.R.T @ K_inv, hom))
     origin = jnp.broadcast_to(camera.center, d.shape)
