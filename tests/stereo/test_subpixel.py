@@ -104,6 +104,32 @@ def test_an_inclined_surface_is_refined_at_each_patch_centre(monkeypatch):
     moved, refined_share = rms()
     assert refined_share > 0.95  # 0.997 measured: the spread about the plane passes the patches
     assert moved < 0.25 * start_rms
-    monkeypatch.setattr(matching, "_energy_centroid", lambda gg, total, box: (np.zeros_like(gg), np.zeros_like(gg)))
+    monkeypatch.setattr(matching, "_energy_centroid", lambda gg, total, box, v: (np.zeros_like(gg), np.zeros_like(gg)))
     unmoved, _ = rms()
     assert unmoved > 5 * moved
+
+
+def test_bands_of_rows_on_threads_give_the_whole_images_values(monkeypatch):
+    """`refine_disparity` runs on bands of rows (one per core), each extended by two windows' half-widths: the
+    result must be the one the whole image gives, bit for bit, whatever the number of bands; with a halo one
+    row short of that it is not (the `_disagreement` window reads rows the band's edge reflected)."""
+    from jaxstereo._stereo import row_bands
+
+    left, right, start, _ = _bumped_pair(seed=3)
+    start[::7, ::5] = np.nan  # unmatched pixels too
+    offset = np.random.default_rng(4).uniform(-1.5, 1.5, start.shape).astype(np.float32)  # rows off the rectified
+
+    def refine():
+        return refine_disparity(left, right, start, offset, window=31, small_window=15, with_sigma=True)
+
+    monkeypatch.setattr(row_bands, "available_cores", lambda: 1)
+    whole = refine()
+    monkeypatch.setattr(row_bands, "available_cores", lambda: 3)
+    monkeypatch.setattr(row_bands, "MIN_BAND_HALOS", 1)  # three bands of 67 rows and their halos of 30
+    banded = refine()
+    for a, b in zip(whole, banded):
+        np.testing.assert_array_equal(a, b)
+    real_map = row_bands.map_row_bands
+    monkeypatch.setattr(matching, "map_row_bands", lambda fn, h, halo: real_map(fn, h, halo - 1))
+    short = refine()
+    assert not all(np.array_equal(a, b, equal_nan=True) for a, b in zip(whole, short))

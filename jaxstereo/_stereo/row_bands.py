@@ -1,0 +1,47 @@
+"""Image work split into bands of rows, run on threads: the single-threaded numpy and OpenCV steps after
+matching use every core. numpy and OpenCV release the GIL inside their array operations."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+MAX_BANDS = 8
+MIN_BAND_HALOS = 4  # a band (without its halo) at least this many halos tall: the halos stay a small share
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def map_row_bands(fn: Callable[[int, int], tuple], height: int, halo: int, bands: int | None = None) -> tuple:
+    """`fn(start, stop)` over bands of an image's rows, on threads, stitched into the whole image's result.
+
+    `fn` computes rows `start:stop` of every output (a tuple of arrays (stop - start, ...), or None entries)
+    from those rows of its inputs alone, its values exact at least `halo` rows from the band's edges. Each
+    band is extended by `halo` rows on both sides (within the image) and only its own rows are kept, so the
+    result is the one `fn(0, height)` gives, up to float rounding in sums that run along the columns.
+    `bands` (default: the cores available, at most `MAX_BANDS`) shrinks while a band would be shorter
+    than `MIN_BAND_HALOS` halos.
+    """
+    count = bands or min(available_cores(), MAX_BANDS)
+    count = max(1, min(count, height // max(MIN_BAND_HALOS * halo, 1)))
+    if count == 1:
+        return fn(0, height)
+    edges = [round(height * i / count) for i in range(count + 1)]
+
+    def run(i: int) -> tuple:
+        start, stop = max(edges[i] - halo, 0), min(edges[i + 1] + halo, height)
+        keep = slice(edges[i] - start, edges[i + 1] - start)
+        return tuple(None if part is None else part[keep] for part in fn(start, stop))
+
+    with ThreadPoolExecutor(count, thread_name_prefix="row-band") as pool:
+        parts = list(pool.map(run, range(count)))
+    return tuple(None if first is None else np.concatenate([p[k] for p in parts]) for k, first in enumerate(parts[0]))
