@@ -154,11 +154,12 @@ def _print_calibration(stereo, report: dict, rig, calibration: dict) -> None:
 
 def _cmd_reconstruct(args) -> int:
     import time
+    from concurrent.futures import ThreadPoolExecutor
 
     from .._calibration.rig import load_rig
     from .._stereo.matching import MatchOptions
     from .._stereo.reconstruct import ReconstructOptions, reconstruct
-    from .._stereo.survey import plot_survey_preview, save_ply, save_survey, survey_summary_json
+    from .._stereo.survey import plot_survey_preview, survey_summary_json
     from .images import check_pair, read_image
     from .io import write_text_atomic
     from .plots import import_matplotlib_in_background
@@ -184,15 +185,15 @@ def _cmd_reconstruct(args) -> int:
                                  max_photometric_ratio=args.photometric_ratio or None)
     survey, summary = reconstruct(left, right, rig, args.water_level, options)
     start = time.perf_counter()
-    save_survey(survey, output)
-    if args.ply:
-        save_ply(survey, args.ply)
-    write_s = time.perf_counter() - start
-    summary["seconds"] = {"load (s)": load_s, **summary["seconds"], "write (s)": write_s}
     preview = Path(args.preview) if args.preview else output.with_name(output.stem + "_preview.png")
-    plot_survey_preview(survey, rig.image_size, preview,
-                        f"{output.name}: {len(survey)} points, model {survey.model}, "
-                        f"{100 * summary['submerged_fraction']:.0f}% submerged")
+    with ThreadPoolExecutor(1) as writer:  # the files are written while the preview is drawn
+        written = writer.submit(_write_survey_files, survey, output, args.ply)
+        plot_survey_preview(survey, rig.image_size, preview,
+                            f"{output.name}: {len(survey)} points, model {survey.model}, "
+                            f"{100 * summary['submerged_fraction']:.0f}% submerged")
+        written.result()
+    summary["seconds"] = {"load (s)": load_s, **summary["seconds"],
+                          "write and preview (s)": time.perf_counter() - start}
     summary_path = output.with_name(output.stem + "_summary.json")
     write_text_atomic(summary_path, survey_summary_json(summary) + "\n")
     level = "dry" if summary["water_level_m"] != summary["water_level_m"] else f"{summary['water_level_m']:.4f} m"
@@ -212,6 +213,15 @@ def _cmd_reconstruct(args) -> int:
         print(f"  {stage:<27} {seconds:.2f}")
     print(f"survey: {output}\npreview: {preview}\nsummary: {summary_path}" + (f"\nply: {args.ply}" if args.ply else ""))
     return 0
+
+
+def _write_survey_files(survey, output: Path, ply: str | None) -> None:
+    """The survey `.npz` and, when asked for, its PLY."""
+    from .._stereo.survey import save_ply, save_survey
+
+    save_survey(survey, output)
+    if ply:
+        save_ply(survey, ply)
 
 
 def _print_sigma(summary: dict) -> None:

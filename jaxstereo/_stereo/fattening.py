@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from .row_bands import map_row_bands
+
 
 def drop_fattened(image: np.ndarray, disparity: np.ndarray, reach_px: int = 12, step_px: float = 1.5,
                   gap_px: int = 4, edge_ratio: float = 2.0) -> np.ndarray:
@@ -34,11 +36,20 @@ def drop_fattened(image: np.ndarray, disparity: np.ndarray, reach_px: int = 12, 
     if image.shape[:2] != disparity.shape:
         raise ValueError(f"image {image.shape[:2]} and disparity {disparity.shape} differ in size")
     pixels = image.reshape(image.shape[0], image.shape[1], -1).astype(np.float32)
-    rows = _along_rows(pixels, disparity, reach_px, step_px, gap_px, edge_ratio)
+    rows = _in_bands(pixels, disparity, reach_px, step_px, gap_px, edge_ratio)
     remaining = np.where(rows, np.nan, disparity)
-    columns = _along_rows(np.ascontiguousarray(np.swapaxes(pixels, 0, 1)), np.ascontiguousarray(remaining.T),
-                          reach_px, step_px, gap_px, edge_ratio).T
+    columns = _in_bands(np.ascontiguousarray(np.swapaxes(pixels, 0, 1)), np.ascontiguousarray(remaining.T),
+                        reach_px, step_px, gap_px, edge_ratio).T
     return rows | columns
+
+
+def _in_bands(pixels, disparity, *settings):
+    """`_along_rows` on bands of rows, one per core; a row's edges are averaged with its neighbours', one row
+    of halo."""
+    def band(start: int, stop: int) -> tuple:
+        return (_along_rows(pixels[start:stop], disparity[start:stop], *settings),)
+
+    return map_row_bands(band, disparity.shape[0], 1)[0]
 
 
 def edge_strength(pixels: np.ndarray) -> np.ndarray:

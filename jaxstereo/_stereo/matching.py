@@ -212,7 +212,7 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, v, shift: float, window: in
     (b, w) (0 where not `valid`), the right image's rows `rows` (b, w) to sample (whole, absolute) in the whole
     right image `Rimg` (h, w, c) and its horizontal `gradient`, the band's rows `v` (b, 1) from the image's
     centre, and the sums' disparity `shift` (px)."""
-    h, w = d0.shape
+    w = d0.shape[1]
     columns = np.arange(w, dtype=np.float32)[None, :]
     weight = valid.astype(np.float32)
     base = np.floor(d0)
@@ -295,7 +295,7 @@ def _plane_terms(d0, weight, shift: float, v):
     `weight` (h, w) is 1: with `m` the weight, `d` the disparity less `shift` px and `u`, `v` the column and row
     from the image's centre (`v` (h, 1) given), `(m, m u, m v, m u u, m v v, m u v, m d, m d u, m d v, m d d)`;
     see `_disparity_plane`."""
-    h, w = d0.shape
+    w = d0.shape[1]
     u = np.arange(w, dtype=np.float32)[None, :] - np.float32(w // 2)
     d = np.where(weight > 0, d0 - np.float32(shift), np.float32(0.0))
     wu, wv = weight * u, weight * v
@@ -331,7 +331,7 @@ def _energy_centroid(gg, s_gg, box, v):
     """Where each patch's gradient energy lies: the offsets (du, dv) px ((h, w) each, float32) of its centroid,
     weighted by the per-pixel energy `gg` (h, w), from the patch's centre; `s_gg` (h, w) the energy's window sum;
     `v` (h, 1) the rows from the image's centre."""
-    h, w = gg.shape
+    w = gg.shape[1]
     u = np.arange(w, dtype=np.float32)[None, :] - np.float32(w // 2)
     total = np.maximum(s_gg, np.float32(1e-12))
     du = cv2.boxFilter(gg * u, -1, box, normalize=False) / total - u

@@ -178,9 +178,9 @@ def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title
     step = max(1, int(np.ceil(max(w, h) / 1000)))  # at most ~1000 px drawn: the figure is ~800 px wide anyway
     gw, gh = -(-w // step), -(-h // step)
     grid = np.full((gh, gw), np.nan)
-    px = np.floor((survey.pixels + 0.5) / step).astype(int)
-    ok = (px[:, 0] >= 0) & (px[:, 0] < gw) & (px[:, 1] >= 0) & (px[:, 1] < gh)
-    grid[px[ok, 1], px[ok, 0]] = z[ok]
+    pu, pv = (np.floor((survey.pixels[:, k] + 0.5) / step).astype(np.intp) for k in (0, 1))
+    ok = (pu >= 0) & (pu < gw) & (pv >= 0) & (pv < gh)
+    grid[pv[ok], pu[ok]] = z[ok]
     im = axes[0].imshow(grid, cmap="viridis", vmin=vmin, vmax=vmax, extent=(-0.5, gw * step - 0.5, gh * step - 0.5, -0.5),
                         interpolation="nearest")
     axes[0].set_title("height (m) in the left image")
@@ -206,12 +206,13 @@ def _top_view(points: np.ndarray, cells: int = 500):
     keeps the preview fast for millions of points."""
     if points.shape[0] == 0:
         return np.full((1, 1), np.nan), (0.0, 1.0, 0.0, 1.0)
-    lo = points[:, :2].min(axis=0)
-    hi = points[:, :2].max(axis=0)
+    x, y = points[:, 0], points[:, 1]  # column by column: numpy reduces an (n, 2) array's axis 0 4x slower
+    lo, hi = np.array([x.min(), y.min()]), np.array([x.max(), y.max()])
     size = max(float(np.max(hi - lo)) / cells, 1e-6)
     shape = np.maximum(np.ceil((hi - lo) / size).astype(int), 1)
-    ij = np.minimum(((points[:, :2] - lo) / size).astype(int), shape - 1)
-    flat = ij[:, 1] * shape[0] + ij[:, 0]
+    i = np.minimum(((x - lo[0]) / size).astype(np.intp), shape[0] - 1)
+    j = np.minimum(((y - lo[1]) / size).astype(np.intp), shape[1] - 1)
+    flat = j * shape[0] + i
     count = np.bincount(flat, minlength=shape[0] * shape[1])
     total = np.bincount(flat, weights=points[:, 2], minlength=shape[0] * shape[1])
     with np.errstate(invalid="ignore", divide="ignore"):
