@@ -1,3 +1,3 @@
-from ._app.cli import main
+from ._app.cli import run
 
-raise SystemExit(main())
+run()

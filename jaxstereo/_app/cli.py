@@ -156,10 +156,6 @@ def _cmd_reconstruct(args) -> int:
     import time
     from concurrent.futures import ThreadPoolExecutor
 
-    from .._calibration.rig import load_rig
-    from .._stereo.matching import MatchOptions
-    from .._stereo.reconstruct import ReconstructOptions, reconstruct
-    from .._stereo.survey import plot_survey_preview, survey_summary_json
     from .images import check_pair, read_image
     from .io import write_text_atomic
     from .plots import import_matplotlib_in_background
@@ -168,10 +164,15 @@ def _cmd_reconstruct(args) -> int:
     if output.suffix != ".npz":
         raise JaxStereoError(f"output {args.output!r} must end in .npz")
     import_matplotlib_in_background()  # for the preview, while the survey is computed
+    from .._calibration.rig import load_rig
+    from .._stereo.matching import MatchOptions
+    from .._stereo.reconstruct import ReconstructOptions, reconstruct
+    from .._stereo.survey import plot_survey_preview, survey_summary_json
+
     start = time.perf_counter()
     rig = load_rig(args.rig)
-    left = read_image(args.left)
-    right = read_image(args.right)
+    reading = getattr(args, "images_read_ahead", {})
+    left, right = (reading[path].result() if path in reading else read_image(path) for path in (args.left, args.right))
     check_pair(left, right, rig.image_size, f"left image {args.left!r}", f"right image {args.right!r}")
     load_s = time.perf_counter() - start
     z_range = tuple(args.z_range) if args.z_range else None
@@ -534,6 +535,20 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def run() -> None:
+    """The `jaxstereo` console command (and `python -m jaxstereo`): `main`, then the process ends at once with
+    its status. The interpreter's own teardown (JAX's runtime, every module, the survey's arrays) would take
+    another half second after a survey; every file the command writes is closed and renamed by then."""
+    import logging
+    import os
+
+    status = main()
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
+
+
 def main(argv=None) -> int:
     """Run the command line; returns the exit status."""
     parser = build_parser()
@@ -551,6 +566,7 @@ def main(argv=None) -> int:
         "grid": _cmd_grid,
         "damage": _cmd_damage,
     }[args.command]
+    args.images_read_ahead = _read_images_ahead(args)
     import jax
 
     from .._stereo.table_cache import use_table_cache
@@ -564,6 +580,21 @@ def main(argv=None) -> int:
         return 2
     finally:
         use_table_cache(None)  # a caller that runs commands in its own process keeps the library's default
+
+
+def _read_images_ahead(args) -> dict:
+    """`reconstruct`'s two images decoding on threads while JAX is imported (about a second; Pillow holds no
+    GIL while it decodes): path -> Future of `read_image`. Empty for the other commands."""
+    if args.command != "reconstruct":
+        return {}
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .images import read_image
+
+    readers = ThreadPoolExecutor(2, thread_name_prefix="read-image")
+    reading = {path: readers.submit(read_image, path) for path in (args.left, args.right)}
+    readers.shutdown(wait=False)
+    return reading
 
 
 def _use_disk_caches(jax) -> None:

@@ -1,8 +1,11 @@
-"""Errors raised by jaxstereo for bad input (never from deep inside JAX)."""
+"""Errors raised by jaxstereo for bad input (never from deep inside JAX).
+
+Imports no JAX at import time: the command line imports this module first and starts reading its images
+while JAX loads (about a second).
+"""
 
 from __future__ import annotations
 
-import jax
 import numpy as np
 
 
@@ -12,6 +15,8 @@ class JaxStereoError(ValueError):
 
 def is_concrete(*values) -> bool:
     """True when no leaf of `values` is a JAX tracer (so its numbers can be checked in Python)."""
+    import jax
+
     leaves = jax.tree_util.tree_leaves(values)
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
 
