@@ -270,25 +270,27 @@ def _row_offsets(rect, rig, interface, disparity, search):
 
     inputs = (rect, rig.left, rig.right, interface, (h, w), tuple(int(k) for k in search))
     table = cached_tables("exact row offsets", inputs, exact)["offset"]
-    v, u = np.nonzero(np.isfinite(disparity))
-    coords = np.stack([v / OFFSET_GRID_PX, u / OFFSET_GRID_PX,
-                       (disparity[v, u] - search[0]) / OFFSET_GRID_DISPARITY_PX])
-    offset = np.full(disparity.shape, np.nan, np.float32)
-    offset[v, u] = _trilinear(table, coords)
+    valid = np.isfinite(disparity)
+    rows = (np.arange(h, dtype=np.float32) / np.float32(OFFSET_GRID_PX))[:, None]
+    columns = (np.arange(w, dtype=np.float32) / np.float32(OFFSET_GRID_PX))[None, :]
+    layers = (np.where(valid, disparity, np.float32(search[0])) - np.float32(search[0])) / np.float32(
+        OFFSET_GRID_DISPARITY_PX)
+    offset = _trilinear(table, (rows, columns, layers))
+    offset[~valid] = np.nan
     return offset
 
 
-def _trilinear(table: np.ndarray, coords: np.ndarray) -> np.ndarray:
-    """Trilinear interpolation of `table` (n0, n1, n2) at fractional indices `coords` (3, k), clamped at the
-    table's edges, (k,) float32. (scipy's `map_coordinates(order=1, mode="nearest")`, without importing
-    scipy.ndimage: a third of a second of a fresh process.)"""
+def _trilinear(table: np.ndarray, coords) -> np.ndarray:
+    """Trilinear interpolation of `table` (n0, n1, n2) at fractional indices `coords`, three arrays that
+    broadcast together, clamped at the table's edges: float32 of their broadcast shape. (scipy's
+    `map_coordinates(order=1, mode="nearest")` without importing scipy.ndimage, a third of a second of a fresh
+    process; an image's rows (h, 1) and columns (1, w) are interpolated once each.)"""
     strides = (table.shape[1] * table.shape[2], table.shape[2], 1)
-    base = np.zeros(coords.shape[1], np.intp)
-    fractions, steps = [], []
-    for axis, n in enumerate(table.shape):
-        x = np.clip(coords[axis], 0.0, n - 1.0)
-        i = np.minimum(x.astype(np.intp), max(n - 2, 0))  # x >= 0: truncation is the floor
-        base += i * strides[axis]
+    base, fractions, steps = 0, [], []
+    for axis, (n, x) in enumerate(zip(table.shape, coords)):
+        x = np.clip(x, 0.0, n - 1.0)
+        i = np.minimum(x.astype(np.int32), max(n - 2, 0))  # x >= 0: truncation is the floor
+        base = base + i * np.int32(strides[axis])
         fractions.append((x - i).astype(np.float32))
         steps.append(strides[axis] if n > 1 else 0)
     flat = table.astype(np.float32).ravel()
