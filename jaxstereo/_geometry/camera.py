@@ -21,13 +21,16 @@ UNDISTORT_ITERATIONS = 12
 
 
 def _pad_dist(dist) -> Float[Array, "8"]:
-    dist = jnp.ravel(jnp.asarray(dist))
+    """The distortion coefficients padded with zeros to `N_DIST` (8,). Concrete values are padded in numpy:
+    each jnp operation a fresh process runs first is traced and loaded (a fifth of a second for these two)."""
+    xp = np if is_concrete(dist) else jnp
+    dist = xp.ravel(xp.asarray(dist))
     if dist.shape[0] > N_DIST:
         raise JaxStereoError(
             f"dist has {dist.shape[0]} coefficients; jaxstereo supports OpenCV's first 8 "
             "(k1, k2, p1, p2, k3, k4, k5, k6), not the thin-prism or tilt terms"
         )
-    return jnp.pad(dist, (0, N_DIST - dist.shape[0]))
+    return as_float64(xp.pad(dist, (0, N_DIST - dist.shape[0])))
 
 
 @float64
