@@ -5,7 +5,6 @@ from __future__ import annotations
 import glob as _glob
 import os
 from pathlib import Path
-from typing import Union
 
 import cv2
 import numpy as np
@@ -15,7 +14,7 @@ from .._geometry.errors import JaxStereoError
 
 # `_geometry.types.PathLike`, not imported from there: that module imports JAX (through jaxtyping), and the
 # command line reads its images while JAX is imported.
-PathLike = Union[str, os.PathLike]
+PathLike = str | os.PathLike
 
 
 def expand_images(pattern_or_paths, what: str = "images") -> list[Path]:
