@@ -157,7 +157,7 @@ def _cmd_reconstruct(args) -> int:
     from concurrent.futures import ThreadPoolExecutor
 
     from .images import check_pair, read_image
-    from .io import write_text_atomic
+    from .io import write_bytes_atomic, write_text_atomic
     from .plots import import_matplotlib_in_background
 
     output = Path(args.output)
@@ -167,7 +167,7 @@ def _cmd_reconstruct(args) -> int:
     from .._calibration.rig import load_rig
     from .._stereo.matching import MatchOptions
     from .._stereo.reconstruct import ReconstructOptions, reconstruct
-    from .._stereo.survey import plot_survey_preview, survey_summary_json
+    from .._stereo.survey import survey_preview_png, survey_summary_json
 
     start = time.perf_counter()
     rig = load_rig(args.rig)
@@ -184,15 +184,21 @@ def _cmd_reconstruct(args) -> int:
                                  match=MatchOptions(block_size=args.block_size, two_way=not args.one_way),
                                  water_level_std_m=args.water_level_std,
                                  max_photometric_ratio=args.photometric_ratio or None)
-    survey, summary = reconstruct(left, right, rig, args.water_level, options)
-    start = time.perf_counter()
     preview = Path(args.preview) if args.preview else output.with_name(output.stem + "_preview.png")
-    with ThreadPoolExecutor(1) as writer:  # the files are written while the preview is drawn
-        written = writer.submit(_write_survey_files, survey, output, args.ply)
-        plot_survey_preview(survey, rig.image_size, preview,
-                            f"{output.name}: {len(survey)} points, model {survey.model}, "
-                            f"{100 * summary['submerged_fraction']:.0f}% submerged")
+    with ThreadPoolExecutor(2) as side:  # the preview is drawn (in memory) while the errors are propagated
+        drawing = []
+
+        def draw(points):
+            title = (f"{output.name}: {len(points)} points, model {points.model}, "
+                     f"{100 * points.submerged.mean():.0f}% submerged")
+            drawing.append(side.submit(survey_preview_png, points, rig.image_size, title))
+
+        survey, summary = reconstruct(left, right, rig, args.water_level, options, on_points=draw)
+        start = time.perf_counter()
+        written = side.submit(_write_survey_files, survey, output, args.ply)
+        png = drawing[0].result()
         written.result()
+    write_bytes_atomic(preview, png)  # only once the survey is written: a failed command leaves no preview
     summary["seconds"] = {"load (s)": load_s, **summary["seconds"],
                           "write and preview (s)": time.perf_counter() - start}
     summary_path = output.with_name(output.stem + "_summary.json")

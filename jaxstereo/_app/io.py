@@ -34,6 +34,12 @@ def write_text_atomic(path, text: str) -> None:
         Path(tmp).write_text(text)
 
 
+def write_bytes_atomic(path, data: bytes) -> None:
+    """Write `data` to `path` atomically (temporary file, then rename)."""
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(data)
+
+
 def read_npz(path, what: str) -> dict:
     """All arrays of an `.npz` file as a dict; `JaxStereoError` naming `what` and the file if it is missing
     or cannot be read (zero bytes, truncated, not an archive). The file is always closed."""

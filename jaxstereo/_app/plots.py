@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .io import atomic_path
+from .io import write_bytes_atomic
 
 
 def import_matplotlib_in_background() -> None:
@@ -38,10 +38,18 @@ def new_figure(nrows: int = 1, ncols: int = 1, figsize=(6.4, 4.8)):
 PNG_COMPRESSION = 3  # zlib level: a survey preview encodes in 0.08 s instead of 0.18 s at PIL's 6, 9 % larger
 
 
+def figure_png(fig, dpi: int = 120) -> bytes:
+    """A matplotlib figure drawn as PNG, in memory."""
+    import io
+
+    buffer = io.BytesIO()
+    fig.savefig(buffer, dpi=dpi, format="png", pil_kwargs={"compress_level": PNG_COMPRESSION})
+    return buffer.getvalue()
+
+
 def save_figure(fig, path, dpi: int = 120) -> None:
     """Save a matplotlib figure as PNG to `path` atomically."""
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png", pil_kwargs={"compress_level": PNG_COMPRESSION})
+    write_bytes_atomic(path, figure_png(fig, dpi))
 
 
 def plot_calibration_errors(stereo, path, names: list[str] | None = None) -> None:

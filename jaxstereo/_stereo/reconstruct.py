@@ -17,6 +17,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 import cv2
 import jax
@@ -313,7 +314,7 @@ def _trilinear(table: np.ndarray, coords) -> np.ndarray:
 @float64
 def reconstruct(
     left_image: np.ndarray, right_image: np.ndarray, rig: Rig, water_level: float | None = None,
-    options: ReconstructOptions = ReconstructOptions(),
+    options: ReconstructOptions = ReconstructOptions(), on_points: Callable[[Survey], None] | None = None,
 ) -> tuple[Survey, dict]:
     """Reconstruct a survey from one stereo pair: at most one point per left pixel, from one match.
 
@@ -334,6 +335,9 @@ def reconstruct(
     - `water_level`: water level (metres, world Z); None to use the rig's interface, or a dry survey
       when the rig has none. A tilted interface comes from the rig.
     - `options`: `ReconstructOptions`.
+    - `on_points`: called with the survey as soon as its points are known, before their errors are propagated
+      (a `Survey` without `cov` and the other error fields): the command line starts drawing its preview on
+      another thread there.
 
     **Returns:** `(survey, summary)`; the summary holds point counts (and how many were dropped and why,
     those above the height range apart), the submerged fraction, the height range used (`height_range_m`),
@@ -374,13 +378,16 @@ def reconstruct(
     kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px,
                                 options.uncertainty)
     timings["triangulate (s)"] = time.perf_counter() - t2
-    errors, shared = {}, None
+    survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model)
+    if on_points is not None:
+        on_points(survey)
+    shared = None
     if options.uncertainty:
         t3 = time.perf_counter()
         shared = shared_errors(rig, _level_std(rig, water_level, interface, options))
         errors = _point_errors(rect, rig, interface, shared, search, kept, subpixel._replace(disparity=disparity))
+        survey = dataclasses.replace(survey, **errors)
         timings["uncertainty (s)"] = time.perf_counter() - t3
-    survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model, errors)
     under = offset[kept.v, kept.u][survey.submerged] if offset is not None else np.zeros(0)
     summary = {
         "points": len(survey),
@@ -476,7 +483,7 @@ def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offse
                  float(np.median(gap_px[keep])), dpoint_dd.take(keep, axis=0))  # take: (n, 3) rows 3x faster
 
 
-def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str, errors: dict) -> Survey:
+def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str) -> Survey:
     """The survey of the kept points: colours from the left rectified image, pixels of the real left image."""
     colour = rect_l[kept.v, kept.u]
     level = float(interface.level) if interface is not None else float("nan")
@@ -488,7 +495,6 @@ def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str, e
         rig_json=json.dumps(rig_to_dict(rig.with_interface(interface)), default=float),
         model=model,
         water_level=level,
-        **errors,
     )
 
 

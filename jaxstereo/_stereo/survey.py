@@ -157,7 +157,15 @@ PREVIEW_PANELS = ((0.06, 0.1, 0.39, 0.78), (0.52, 0.1, 0.38, 0.78), (0.92, 0.15,
 
 
 def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title: str = "") -> None:
-    """Two panels: height in the left image's pixels, and a top view (x, y) coloured by height.
+    """`survey_preview_png` written to `path` (atomically)."""
+    from .._app.io import write_bytes_atomic
+
+    write_bytes_atomic(path, survey_preview_png(survey, image_size, title))
+
+
+def survey_preview_png(survey: Survey, image_size: tuple[int, int], title: str = "") -> bytes:
+    """The survey's preview, a PNG in memory: height in the left image's pixels (`image_size` (w, h) pixels),
+    and a top view (x, y) coloured by height.
 
     The panels sit at fixed places (`PREVIEW_PANELS`) instead of a constrained layout, which measured the
     text of every tick to place them: on the development flume's wet breakwater (1.3 million points, 2-core
@@ -165,7 +173,7 @@ def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title
     """
     from matplotlib.figure import Figure
 
-    from .._app.plots import save_figure
+    from .._app.plots import figure_png
 
     fig = Figure(figsize=(13, 4.8))
     axes = [fig.add_axes(box) for box in PREVIEW_PANELS[:2]]
@@ -197,7 +205,7 @@ def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title
     axes[1].set_title("top view")
     fig.colorbar(im, cax=fig.add_axes(PREVIEW_PANELS[2]), label="z (m)")
     fig.suptitle(title or f"survey: {len(survey)} points, model {survey.model}", y=0.98)
-    save_figure(fig, path)
+    return figure_png(fig)
 
 
 def _top_view(points: np.ndarray, cells: int = 500):
