@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from .channels import channel_list
 from .row_bands import map_row_bands
 
 
@@ -57,7 +58,7 @@ def edge_strength(pixels: np.ndarray) -> np.ndarray:
     with the rows above and below: the edge between columns u - 1 and u is at index u."""
     h, w = pixels.shape[:2]
     edge = np.zeros((h, w), np.float32)
-    edge[:, 1:] = np.sqrt(np.sum((pixels[:, 1:] - pixels[:, :-1]) ** 2, axis=-1))
+    edge[:, 1:] = np.sqrt(sum(c * c for c in channel_list(pixels[:, 1:] - pixels[:, :-1])))
     smooth = edge.copy()
     if h >= 3:
         smooth[1:-1] = (edge[:-2] + edge[1:-1] + edge[2:]) / 3

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from .._geometry.errors import JaxStereoError
+from .channels import channel_list
 from .fattening import drop_fattened
 from .row_bands import map_row_bands
 
@@ -106,7 +107,7 @@ def _one_way(left, right, min_disparity, num_disparities, options):
     disparity = raw.astype(np.float32) / 16.0
     invalid = raw <= (min_disparity - 1) * 16
     # Pixels whose support window leaves either image are unreliable too.
-    valid_left = left.reshape(left.shape[0], left.shape[1], -1).max(axis=-1) > 0
+    valid_left = np.logical_or.reduce(channel_list(left > 0))
     columns = np.arange(left.shape[1], dtype=np.float32)[None, :]
     outside = columns - disparity < bs // 2
     disparity[invalid | ~valid_left | outside] = np.nan

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from .._geometry.errors import JaxStereoError
+from .channels import channel_list
 
 RESIDUAL_WINDOW_PX = 3  # the residual is averaged over this square around each pixel
 SCALE_BLOCK_PX = 128  # the local scale is the median residual of the matches in blocks this wide
@@ -42,7 +43,7 @@ def photometric_residual(left: np.ndarray, right: np.ndarray, disparity: np.ndar
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     difference = np.abs(left.astype(np.float32) - sampled)
     if difference.ndim == 3:
-        difference = difference.sum(axis=2)
+        difference = sum(channel_list(difference))
     weight = valid.astype(np.float32)
     box = (RESIDUAL_WINDOW_PX, RESIDUAL_WINDOW_PX)
     total = cv2.boxFilter(difference * weight, -1, box, normalize=False)
