@@ -65,9 +65,10 @@ def _plain_opencv(left_path, right_path, rig: dict, out: Path) -> int:
 
 
 def _bare_sgbm(left_path, right_path) -> float:
+    """Bare colour SGBM as flume-score times it: both JPEGs read, the matcher made, the pair matched."""
+    start = time.perf_counter()
     L, R = cv2.imread(str(left_path)), cv2.imread(str(right_path))
     sgbm = cv2.StereoSGBM_create(0, 256, 5, 8 * 3 * 25, 32 * 3 * 25, 1, 0, 10, 100, 2, cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-    start = time.perf_counter()
     sgbm.compute(L, R)
     return time.perf_counter() - start
 
