@@ -21,17 +21,17 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
-def map_row_bands(fn: Callable[[int, int], tuple], height: int, halo: int, bands: int | None = None) -> tuple:
+def map_row_bands(fn: Callable[[int, int], tuple], height: int, halo: int) -> tuple:
     """`fn(start, stop)` over bands of an image's rows, on threads, stitched into the whole image's result.
 
     `fn` computes rows `start:stop` of every output (a tuple of arrays (stop - start, ...), or None entries)
     from those rows of its inputs alone, its values exact at least `halo` rows from the band's edges. Each
     band is extended by `halo` rows on both sides (within the image) and only its own rows are kept, so the
     result is the one `fn(0, height)` gives, up to float rounding in sums that run along the columns.
-    `bands` (default: the cores available, at most `MAX_BANDS`) shrinks while a band would be shorter
-    than `MIN_BAND_HALOS` halos.
+    There is one band per available core (at most `MAX_BANDS`), fewer where a band would be shorter than
+    `MIN_BAND_HALOS` halos.
     """
-    count = bands or min(available_cores(), MAX_BANDS)
+    count = min(available_cores(), MAX_BANDS)
     count = max(1, min(count, height // max(MIN_BAND_HALOS * halo, 1)))
     if count == 1:
         return fn(0, height)
