@@ -39,7 +39,7 @@ from .photometric import MAX_RESIDUAL_RATIO, photometric_outliers
 from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, remap
 from .survey import Survey
 from .table_cache import cached_tables
-from .uncertainty import SharedErrors, point_covariances, shared_covariance_table, shared_errors
+from .uncertainty import SharedErrors, load_point_covariances, point_covariances, shared_covariance_table, shared_errors
 
 log = logging.getLogger("jaxstereo")
 
@@ -230,11 +230,12 @@ def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera,
 _triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=(4, 5))
 
 
-def _load_triangulation_in_background(rect, rig: Rig, interface, model: str, with_jacobian: bool) -> threading.Thread:
-    """Trace the chunked triangulation and load it (JAX's persistent cache) or compile it, on a dummy chunk in a
-    thread of its own, while the main thread refines the matches (numpy and OpenCV, one core): in a fresh
-    process that is about 0.6 s of tracing and loading taken off the command's time. Join it before
-    triangulating; whatever fails here (nothing should) fails again, with its message, in the real call."""
+def _load_in_background(rect, rig: Rig, interface, model: str, with_jacobian: bool, search) -> threading.Thread:
+    """Trace the chunked triangulation and, `with_jacobian`, the covariance table's interpolation (for the
+    `search` range), and load them (JAX's persistent cache) or compile them, on dummy values in a thread of its
+    own, while the main thread refines the matches (numpy and OpenCV): in a fresh process that is about 0.7 s
+    of tracing and loading taken off the command's time. Join it before triangulating; whatever fails here
+    (nothing should) fails again, with its message, in the real call."""
 
     @float64
     def load():
@@ -242,10 +243,12 @@ def _load_triangulation_in_background(rect, rig: Rig, interface, model: str, wit
         try:
             jax.block_until_ready(_triangulate_chunk_jit(rect, rig.left, rig.right, interface, model, with_jacobian,
                                                          dummy, dummy))
+            if with_jacobian:
+                load_point_covariances(rig.image_size, search)
         except Exception as err:  # noqa: BLE001 - only a head start: the real call raises it properly
-            log.debug("loading the triangulation ahead failed: %s", err)
+            log.debug("loading the compiled functions ahead failed: %s", err)
 
-    thread = threading.Thread(target=load, name="load-triangulation", daemon=True)
+    thread = threading.Thread(target=load, name="load-compiled", daemon=True)
     thread.start()
     return thread
 
@@ -356,7 +359,7 @@ def reconstruct(
     rect_l, rect_r, disparity, search, left_map = _match(rect, rig, interface, left_image, right_image, z_range,
                                                          options)
     timings["rectify+match (s)"] = time.perf_counter() - t0
-    loading = _load_triangulation_in_background(rect, rig, interface, model, options.uncertainty)
+    loading = _load_in_background(rect, rig, interface, model, options.uncertainty, search)
 
     t1 = time.perf_counter()
     offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None

@@ -137,12 +137,7 @@ def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface 
     **Returns:** `{"table": (2, nv, nu, nd, 7) [xx, yy, zz, xy, xz, yz, zz from the water level alone] m^2,
     "origin": (v0, u0, d0), "step": (sv, su, sd)}` for `point_covariances`.
     """
-    w, h = image_size
-    us = np.arange(0, w - 1 + TABLE_STEP_PX, TABLE_STEP_PX, dtype=np.float64)
-    vs = np.arange(0, h - 1 + TABLE_STEP_PX, TABLE_STEP_PX, dtype=np.float64)
-    ds = np.arange(search[0], search[0] + search[1] + TABLE_STEP_DISPARITY_PX, TABLE_STEP_DISPARITY_PX,
-                   dtype=np.float64)
-    V, U, D = np.meshgrid(vs, us, ds, indexing="ij")
+    V, U, D = np.meshgrid(*_table_axes(image_size, search), indexing="ij")
     n = V.size
     padded = 1 << max(10, int(np.ceil(np.log2(n))))  # a few compiled sizes, not one per search range
     rl = np.stack([U.ravel(), V.ravel()], axis=-1)
@@ -162,6 +157,27 @@ def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface 
     seven = cached_tables("shared covariance", inputs, table)["table"]
     return {"table": seven.reshape((2,) + V.shape + (7,)), "origin": (0.0, 0.0, float(search[0])),
             "step": (float(TABLE_STEP_PX), float(TABLE_STEP_PX), float(TABLE_STEP_DISPARITY_PX))}
+
+
+def _table_axes(image_size: tuple[int, int], search: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The covariance table's nodes: rows, columns (pixels, every `TABLE_STEP_PX`) and disparities (pixels, every
+    `TABLE_STEP_DISPARITY_PX` over the `search` range `(first, count)`), float64."""
+    w, h = image_size
+    us = np.arange(0, w - 1 + TABLE_STEP_PX, TABLE_STEP_PX, dtype=np.float64)
+    vs = np.arange(0, h - 1 + TABLE_STEP_PX, TABLE_STEP_PX, dtype=np.float64)
+    ds = np.arange(search[0], search[0] + search[1] + TABLE_STEP_DISPARITY_PX, TABLE_STEP_DISPARITY_PX,
+                   dtype=np.float64)
+    return vs, us, ds
+
+
+def load_point_covariances(image_size: tuple[int, int], search: tuple[int, int]) -> None:
+    """Trace `point_covariances`' interpolation for the table of `image_size` (w, h) and `search` (first, count)
+    pixels, and load it (JAX's persistent cache) or compile it, on zeros: what a fresh process would otherwise
+    do in its first call (a tenth of a second). Thread-safe; the values are not used."""
+    shape = (2, *(len(axis) for axis in _table_axes(image_size, search)), 7)
+    jax.block_until_ready(_interpolate_table(jnp.asarray(np.zeros(shape, np.float32)),
+                                             jnp.asarray(np.zeros((3, INTERPOLATION_CHUNK), np.float32)),
+                                             jnp.asarray(np.zeros(INTERPOLATION_CHUNK, np.int32))))
 
 
 def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.ndarray, submerged: np.ndarray,
