@@ -205,33 +205,20 @@ def _triangulate_model(rect: Rectification, left_cam: Camera, right_cam: Camera,
 
 
 def _triangulate_chunk(rect: Rectification, left_cam: Camera, right_cam: Camera, interface: Interface | None,
-                       model: str, with_jacobian: bool, rl, rr):
-    """`_triangulate_model`, and each point's derivative with respect to its disparity (a forward-mode JVP).
+                       model: str, rl, rr):
+    """`_triangulate_model`, and each point's distance from the left camera.
 
-    **Returns:** `(points, gap, submerged, ok, distance, dpoint_dd)`: as `_triangulate_model`, the distance
-    from the left camera (n,) metres, and d(point)/d(disparity) (n, 3) metres per pixel (zeros without
-    `with_jacobian`).
+    **Returns:** `(points, gap, submerged, ok, distance)`: as `_triangulate_model`, and the distance (n,) metres.
     """
-    if not with_jacobian:
-        points, gap, submerged, ok = _triangulate_model(rect, left_cam, right_cam, interface, model, rl, rr)
-        distance = norm3(points - left_cam.center)
-        return points, gap, submerged, ok, distance, jnp.zeros_like(points)
-
-    def points_of(right_pixels):
-        out = _triangulate_model(rect, left_cam, right_cam, interface, model, rl, right_pixels)
-        return out[0], out
-
-    tangent = jnp.zeros_like(rr).at[:, 0].set(-1.0)  # a larger disparity moves the right pixel left
-    _, dpoint_dd, (points, gap, submerged, ok) = jax.jvp(points_of, (rr,), (tangent,), has_aux=True)
-    distance = norm3(points - left_cam.center)
-    return points, gap, submerged, ok, distance, dpoint_dd
+    points, gap, submerged, ok = _triangulate_model(rect, left_cam, right_cam, interface, model, rl, rr)
+    return points, gap, submerged, ok, norm3(points - left_cam.center)
 
 
-_triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=(4, 5))
+_triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=4)
 
 
-def _load_in_background(rect, rig: Rig, interface, model: str, with_jacobian: bool, search) -> threading.Thread:
-    """Trace the chunked triangulation and, `with_jacobian`, the covariance table's interpolation (for the
+def _load_in_background(rect, rig: Rig, interface, model: str, with_covariances: bool, search) -> threading.Thread:
+    """Trace the chunked triangulation and, `with_covariances`, the covariance table's interpolation (for the
     `search` range), and load them (JAX's persistent cache) or compile them, on dummy values in a thread of its
     own, while the main thread refines the matches (numpy and OpenCV): in a fresh process that is about 0.7 s
     of tracing and loading taken off the command's time. Join it before triangulating; whatever fails here
@@ -241,9 +228,8 @@ def _load_in_background(rect, rig: Rig, interface, model: str, with_jacobian: bo
     def load():
         dummy = jnp.ones((CHUNK, 2))
         try:
-            jax.block_until_ready(_triangulate_chunk_jit(rect, rig.left, rig.right, interface, model, with_jacobian,
-                                                         dummy, dummy))
-            if with_jacobian:
+            jax.block_until_ready(_triangulate_chunk_jit(rect, rig.left, rig.right, interface, model, dummy, dummy))
+            if with_covariances:
                 load_point_covariances(rig.image_size, search)
         except Exception as err:  # noqa: BLE001 - only a head start: the real call raises it properly
             log.debug("loading the compiled functions ahead failed: %s", err)
@@ -378,8 +364,7 @@ def reconstruct(
 
     t2 = time.perf_counter()
     loading.join()
-    kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px,
-                                options.uncertainty)
+    kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px)
     timings["triangulate (s)"] = time.perf_counter() - t2
     survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model)
     if on_points is not None:
@@ -388,7 +373,8 @@ def reconstruct(
     if options.uncertainty:
         t3 = time.perf_counter()
         shared = shared_errors(rig, _level_std(rig, water_level, interface, options))
-        errors = _point_errors(rect, rig, interface, shared, search, kept, subpixel._replace(disparity=disparity))
+        errors = _point_errors(rect, rig, interface, shared, search, kept, subpixel._replace(disparity=disparity),
+                               refracts=model != "none")
         survey = dataclasses.replace(survey, **errors)
         timings["uncertainty (s)"] = time.perf_counter() - t3
     under = offset[kept.v, kept.u][survey.submerged] if offset is not None else np.zeros(0)
@@ -436,20 +422,20 @@ def _drop_undetermined(subpixel: Subpixel, limit_px: float) -> tuple[np.ndarray,
     return np.where(undetermined, np.nan, subpixel.disparity), int(np.count_nonzero(undetermined))
 
 
-def _point_errors(rect, rig: Rig, interface, shared: SharedErrors, search, kept: "_Kept", subpixel: Subpixel) -> dict:
-    """The kept points' error fields for the `Survey` (see `point_covariances`)."""
+def _point_errors(rect, rig: Rig, interface, shared: SharedErrors, search, kept: "_Kept", subpixel: Subpixel,
+                  refracts: bool) -> dict:
+    """The kept points' error fields for the `Survey` (see `point_covariances`): the submerged points' from the
+    refracted sub-table when the model `refracts`, every point's from the in-air one otherwise."""
     table = shared_covariance_table(rect, rig, interface, shared, rig.image_size, search)
     v, u = kept.v, kept.u
-    return point_covariances(table, v, u, subpixel.disparity[v, u], kept.submerged,
-                             subpixel.sigma[v, u].astype(np.float64), kept.dpoint_dd,
-                             subpixel.disagreement[v, u].astype(np.float64))
+    return point_covariances(table, v, u, subpixel.disparity[v, u], kept.submerged & refracts,
+                             subpixel.sigma[v, u].astype(np.float64), subpixel.disagreement[v, u].astype(np.float64))
 
 
 @dataclasses.dataclass(frozen=True)
 class _Kept:
     """The matches that became points: their left rectified pixels (`v`, `u`), points (k, 3) world metres,
-    submerged flags (k,), the match counts and drops by reason, the median ray gap (pixels), and each
-    point's derivative with respect to its disparity (k, 3) metres per pixel."""
+    submerged flags (k,), the match counts and drops by reason, and the median ray gap (pixels)."""
 
     v: np.ndarray
     u: np.ndarray
@@ -457,20 +443,18 @@ class _Kept:
     submerged: np.ndarray
     counts: dict
     median_gap_px: float
-    dpoint_dd: np.ndarray
 
 
-def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offset, z_range, max_ray_gap_px,
-                         with_jacobian: bool) -> _Kept:
+def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offset, z_range, max_ray_gap_px) -> _Kept:
     """Triangulate every match (exactly, chunked); keep those whose rays meet within `max_ray_gap_px` and
-    whose point lies in `z_range`; with `with_jacobian`, each point's derivative with respect to its disparity."""
+    whose point lies in `z_range`."""
     rl, rr, v, u = _pairs_from_disparity(disparity)
     if offset is not None:
         rr[:, 1] += offset[v, u]
     if rl.shape[0] == 0:
         raise JaxStereoError("no matches survived: SGBM found no match in the expected depth range (no shared texture?)")
-    points, gap, submerged, ok, distance, dpoint_dd = _chunked(
-        _triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model, with_jacobian), rl, rr)
+    points, gap, submerged, ok, distance = _chunked(_triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model),
+                                                    rl, rr)
     gap_px = gap * float(rect.K[0, 0]) / np.maximum(distance, 1e-9)
     finite = ok & np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])  # (n, 3) reduced column by column: 3x faster
     meets = finite & (gap_px <= max_ray_gap_px)
@@ -483,7 +467,7 @@ def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offse
               "dropped_above_height_range": int(np.sum(meets & (points[:, 2] > z_range[1]))),
               "dropped_invalid_rays": int(np.sum(~finite))}
     return _Kept(v[keep], u[keep], points.take(keep, axis=0), submerged[keep].astype(bool), counts,
-                 float(np.median(gap_px[keep])), dpoint_dd.take(keep, axis=0))  # take: (n, 3) rows 3x faster
+                 float(np.median(gap_px[keep])))
 
 
 def _survey_of(kept: _Kept, rect_l, left_map, rig: Rig, interface, model: str) -> Survey:

@@ -4,12 +4,15 @@ Two kinds of error, kept apart because they behave differently downstream:
 
 - **matching**, independent from match to match (beyond the matching window): the disparity's standard
   deviation from the matching itself (`refine_disparity`) times the derivative of the point with respect
-  to the right pixel, a forward-mode JVP taken with the triangulation;
+  to its disparity (see below: tabulated with the shared Jacobian, to within 1 % of the exact derivative);
 - **shared** by every point of a survey: the calibration (the world frame's 6 parameters, the right
   camera's pose relative to the left 6, the focal length 1) and the water level (1), with the covariance
   the calibration and `refine` recorded in the rig. Their effect on a point is the (3, 14) Jacobian of the
-  triangulation with respect to them, computed exactly on a table over (u, v, disparity) for emerged and
-  for submerged points, and interpolated to each match (it is smooth in all three);
+  triangulation with respect to them, computed exactly (forward-mode JAX derivatives) on a table over
+  (u, v, disparity) for emerged and for submerged points, and interpolated to each match (it is smooth in
+  all three). The table holds the derivative with respect to the disparity too. Both come from the exact
+  model (in air, or refracted exactly): for a first-order survey they are the exact model's, which differs
+  from its own by the approximation's small relative error;
 - the **sub-pixel estimators' disagreement** (`refine_disparity`): a systematic offset of unknown sign,
   correlated over the window, carried by the same derivative as the matching's.
 
@@ -41,6 +44,7 @@ SHARED_PARAMETERS = ("frame rotation x (rad)", "frame rotation y (rad)", "frame 
 TABLE_STEP_PX = 96  # table spacing in u and v (pixels)
 TABLE_STEP_DISPARITY_PX = 8  # and in disparity
 INTERPOLATION_CHUNK = 1 << 17  # matches per compiled interpolation call
+TABLE_CHANNELS = 10  # the shared covariance's 6 terms, its water level part, the point's derivative (3)
 MATCH_CORRELATION_PX = 31  # matches closer than the sub-pixel fit's window share most of it: their errors correlate
 
 
@@ -118,11 +122,13 @@ def _triangulate_as(submerged: bool, interface: Interface | None, theta, rays):
 
 
 def _shared_jacobians(rect, left, right, interface, rl, rr):
-    """(2, n, 3, 14): the points' Jacobians with respect to the shared parameters, emerged and submerged."""
+    """(2, n, 3, 15): the points' Jacobians with respect to the shared parameters (the first 14 columns,
+    `SHARED_PARAMETERS`) and to the disparity (the last: metres per pixel), emerged and submerged."""
     def points(theta, submerged):
-        return _triangulate_as(submerged, interface, theta, _perturbed_rays(theta, rect, left, right, rl, rr))
+        shifted = rr - theta[14] * jnp.asarray([1.0, 0.0])  # a larger disparity moves the right pixel left
+        return _triangulate_as(submerged, interface, theta, _perturbed_rays(theta, rect, left, right, rl, shifted))
 
-    zero = jnp.zeros(14)
+    zero = jnp.zeros(15)
     return jnp.stack([jax.jacfwd(points)(zero, s) for s in (False, True)])
 
 
@@ -131,11 +137,12 @@ _shared_jacobians_jit = jax.jit(_shared_jacobians)
 
 def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface | None, shared: SharedErrors,
                             image_size: tuple[int, int], search: tuple[int, int]) -> dict:
-    """The shared errors' covariance of a point (3, 3), for emerged and submerged points, on a table over the
-    left rectified pixel (u, v) and the disparity (every `TABLE_STEP_PX` and `TABLE_STEP_DISPARITY_PX`).
+    """The shared errors' covariance of a point (3, 3) and the point's derivative with respect to its disparity
+    (3,), for emerged and submerged points (in air; refracted exactly), on a table over the left rectified pixel
+    (u, v) and the disparity (every `TABLE_STEP_PX` and `TABLE_STEP_DISPARITY_PX`).
 
-    **Returns:** `{"table": (2, nv, nu, nd, 7) [xx, yy, zz, xy, xz, yz, zz from the water level alone] m^2,
-    "origin": (v0, u0, d0), "step": (sv, su, sd)}` for `point_covariances`.
+    **Returns:** `{"table": (2, nv, nu, nd, 10) [xx, yy, zz, xy, xz, yz, zz from the water level alone] m^2 and
+    [dx, dy, dz] / dd metres per pixel, "origin": (v0, u0, d0), "step": (sv, su, sd)}` for `point_covariances`.
     """
     V, U, D = np.meshgrid(*_table_axes(image_size, search), indexing="ij")
     n = V.size
@@ -146,16 +153,17 @@ def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface 
     def table() -> dict:
         padded_l, padded_r = (jnp.asarray(np.pad(a, ((0, padded - n), (0, 0)), mode="edge")) for a in (rl, rr))
         J = np.asarray(_shared_jacobians_jit(rect, rig.left, rig.right, interface, padded_l, padded_r))[:, :n]
-        cov = np.einsum("cnik,kl,cnjl->cnij", J, shared.cov, J)
+        shared_part = J[..., :14]
+        cov = np.einsum("cnik,kl,cnjl->cnij", shared_part, shared.cov, shared_part)
         level_zz = J[..., 2, 13] ** 2 * shared.cov[13, 13]
-        seven = np.stack([cov[..., 0, 0], cov[..., 1, 1], cov[..., 2, 2], cov[..., 0, 1], cov[..., 0, 2],
-                          cov[..., 1, 2], level_zz], axis=-1)
-        return {"table": np.nan_to_num(seven, nan=0.0, posinf=0.0, neginf=0.0)}
+        ten = np.stack([cov[..., 0, 0], cov[..., 1, 1], cov[..., 2, 2], cov[..., 0, 1], cov[..., 0, 2],
+                        cov[..., 1, 2], level_zz, J[..., 0, 14], J[..., 1, 14], J[..., 2, 14]], axis=-1)
+        return {"table": np.nan_to_num(ten, nan=0.0, posinf=0.0, neginf=0.0)}
 
     inputs = (rect, rig.left, rig.right, interface, np.asarray(shared.cov, np.float64), tuple(image_size),
               tuple(int(k) for k in search))
-    seven = cached_tables("shared covariance", inputs, table)["table"]
-    return {"table": seven.reshape((2,) + V.shape + (7,)), "origin": (0.0, 0.0, float(search[0])),
+    ten = cached_tables("shared covariance", inputs, table)["table"]
+    return {"table": ten.reshape((2,) + V.shape + (TABLE_CHANNELS,)), "origin": (0.0, 0.0, float(search[0])),
             "step": (float(TABLE_STEP_PX), float(TABLE_STEP_PX), float(TABLE_STEP_DISPARITY_PX))}
 
 
@@ -174,20 +182,21 @@ def load_point_covariances(image_size: tuple[int, int], search: tuple[int, int])
     """Trace `point_covariances`' interpolation for the table of `image_size` (w, h) and `search` (first, count)
     pixels, and load it (JAX's persistent cache) or compile it, on zeros: what a fresh process would otherwise
     do in its first call (a tenth of a second). Thread-safe; the values are not used."""
-    shape = (2, *(len(axis) for axis in _table_axes(image_size, search)), 7)
+    shape = (2, *(len(axis) for axis in _table_axes(image_size, search)), TABLE_CHANNELS)
     jax.block_until_ready(_interpolate_table(jnp.asarray(np.zeros(shape, np.float32)),
                                              jnp.asarray(np.zeros((3, INTERPOLATION_CHUNK), np.float32)),
                                              jnp.asarray(np.zeros(INTERPOLATION_CHUNK, np.int32))))
 
 
-def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.ndarray, submerged: np.ndarray,
-                      sigma_d: np.ndarray, dpoint_dd: np.ndarray, disagreement: np.ndarray) -> dict:
+def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.ndarray, refracted: np.ndarray,
+                      sigma_d: np.ndarray, disagreement: np.ndarray) -> dict:
     """Each point's covariance: shared (interpolated from `table`), matching (`sigma_d^2 j j^T`) and the sub-pixel
-    estimators' disagreement (`delta^2 j j^T`, see `refine_disparity`), with `j = dpoint_dd`.
+    estimators' disagreement (`delta^2 j j^T`, see `refine_disparity`), with `j` the point's derivative with
+    respect to its disparity (interpolated from `table` too).
 
-    **Arguments:** the matches' left rectified rows `v`, columns `u`, disparities (k,) pixels; `submerged`
-    (k,) bool; the disparities' std `sigma_d` (k,) pixels; `dpoint_dd` (k, 3) metres per pixel of disparity;
-    `disagreement` (k,) pixels.
+    **Arguments:** the matches' left rectified rows `v`, columns `u`, disparities (k,) pixels; `refracted` (k,)
+    bool: the table's submerged (refracted) sub-table, else the emerged (in-air) one; the disparities' std
+    `sigma_d` (k,) pixels; `disagreement` (k,) pixels.
 
     **Returns:** the `Survey` fields `cov` (k, 6) float32 [xx, yy, zz, xy, xz, yz] m^2, `sigma_z_match` and
     `sigma_z_level` (k,) float32 metres (the matching's and the water level's parts of the vertical std), and
@@ -197,20 +206,20 @@ def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.n
     coords = np.stack([(v - origin[0]) / step[0], (u - origin[1]) / step[1], (disparity - origin[2]) / step[2]])
     f32 = np.float32
     values = jnp.asarray(table["table"].astype(f32))
-    seven = np.empty((7, len(v)), f32)
+    channels = np.empty((TABLE_CHANNELS, len(v)), f32)
     for start in range(0, len(v), INTERPOLATION_CHUNK):  # fixed-size chunks: compiled once, whatever the count
         part = slice(start, start + INTERPOLATION_CHUNK)
         count = coords[:, part].shape[1]
         pad = INTERPOLATION_CHUNK - count
         c = np.pad(coords[:, part], ((0, 0), (0, pad))).astype(f32)
-        cls = np.pad(submerged[part].astype(np.int32), (0, pad))
-        seven[:, part] = np.asarray(_interpolate_table(values, jnp.asarray(c), jnp.asarray(cls)))[:, :count]
-    j = dpoint_dd.T.astype(f32)  # (3, k): column-wise arithmetic, float32 (covariances need no more)
+        cls = np.pad(refracted[part].astype(np.int32), (0, pad))
+        channels[:, part] = np.asarray(_interpolate_table(values, jnp.asarray(c), jnp.asarray(cls)))[:, :count]
+    j = channels[7:10]  # (3, k): column-wise arithmetic, float32 (covariances need no more)
     match, method = j * sigma_d.astype(f32), j * np.nan_to_num(disagreement).astype(f32)
     cov = np.empty((len(v), 6), f32)
     for c, (p, q) in enumerate(zip(*_PAIRS)):
-        cov[:, c] = seven[c] + match[p] * match[q] + method[p] * method[q]
-    return {"cov": cov, "sigma_z_match": np.abs(match[2]), "sigma_z_level": np.sqrt(np.maximum(seven[6], 0.0)),
+        cov[:, c] = channels[c] + match[p] * match[q] + method[p] * method[q]
+    return {"cov": cov, "sigma_z_match": np.abs(match[2]), "sigma_z_level": np.sqrt(np.maximum(channels[6], 0.0)),
             "dz_subpixel": method[2]}
 
 

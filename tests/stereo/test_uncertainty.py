@@ -39,18 +39,22 @@ def _disparity_span(rect, left, right, interface, rl):
     return disparity_bounds(rect, left, right, interface, LEVEL - 0.10, LEVEL + 0.15)
 
 
-def test_disparity_jacobian_matches_finite_differences(x64, wet_pair):
+def test_disparity_derivative_matches_finite_differences_of_the_triangulation(x64, wet_pair):
+    """The shared Jacobians' last column, d(point)/d(disparity) for the point's own class, against central
+    differences of the exact model's triangulation (`_triangulate_model`) itself."""
     left, right, interface, rect, rl, rr = wet_pair
-    points, _, submerged, ok, _, jac = _triangulate_chunk(rect, left, right, interface, "exact", True,
-                                                          jnp.asarray(rl), jnp.asarray(rr))
+    _, _, submerged, ok, _ = _triangulate_chunk(rect, left, right, interface, "exact", jnp.asarray(rl), jnp.asarray(rr))
+    submerged = np.asarray(submerged)
     assert np.all(ok) and 0 < np.sum(submerged) < len(rl)  # both kinds of point are checked
+    J = np.asarray(_shared_jacobians(rect, left, right, interface, jnp.asarray(rl), jnp.asarray(rr)))
+    jac = np.where(submerged[:, None], J[1, :, :, 14], J[0, :, :, 14])
     h = 1e-4
     step = np.array([[h, 0.0]])
     plus = np.asarray(_triangulate_model(rect, left, right, interface, "exact", jnp.asarray(rl), jnp.asarray(rr - step))[0])
     minus = np.asarray(_triangulate_model(rect, left, right, interface, "exact", jnp.asarray(rl), jnp.asarray(rr + step))[0])
     fd = (plus - minus) / (2 * h)
-    np.testing.assert_allclose(np.asarray(jac), fd, rtol=1e-5, atol=1e-9)
-    assert np.all(np.abs(np.asarray(jac)[:, 2]) > 1e-4)  # millimetres per pixel: a real derivative
+    np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-9)
+    assert np.all(np.abs(jac[:, 2]) > 1e-4)  # millimetres per pixel: a real derivative
 
 
 def _reference_points(theta, rig: Rig, interface: Interface, raw_l, raw_r, submerged):
@@ -99,6 +103,13 @@ def test_shared_jacobians_match_finite_differences_of_a_numpy_reference(x64, wet
             # scales the undistorted ray: equal up to the lens's distortion, a few percent at the corners.
             tol = 0.05 if name.startswith("focal") else 2e-3
             np.testing.assert_allclose(J[cls, :, :, k], fd, atol=tol * scale, err_msg=f"{name}, class {cls}")
+    h = 1e-3  # pixels of disparity: a larger one moves the right pixel left
+    moved = [np.asarray(rectified_to_real(rect, right, 1, jnp.asarray(rr + sign * np.array([[h, 0.0]])))[0])
+             for sign in (-1, 1)]
+    for cls in (0, 1):
+        fd = (_reference_points(np.zeros(14), rig, interface, raw_l, moved[0], cls)
+              - _reference_points(np.zeros(14), rig, interface, raw_l, moved[1], cls)) / (2 * h)
+        np.testing.assert_allclose(J[cls, :, :, 14], fd, atol=2e-3 * np.abs(fd).max(), err_msg=f"disparity, class {cls}")
 
 
 def test_covariance_matrices_unpacks_the_six_terms():
@@ -166,7 +177,8 @@ def test_survey_carries_error_bars_that_grow_under_water(x64):
 def test_shared_covariance_table_interpolates_the_exact_jacobians(x64, wet_pair):
     """The table every 96 px and 8 px of disparity, interpolated, against the shared covariance from the exact
     Jacobians at the matches themselves: vertical variances within 2 % (1.1 % measured), horizontal within 6 %
-    (5.0 %), i.e. standard deviations within 1 % and 3 %."""
+    (5.0 %), i.e. standard deviations within 1 % and 3 %; the point's derivative with respect to its disparity
+    within 1 %."""
     from jaxstereo._stereo.uncertainty import SharedErrors, point_covariances, shared_covariance_table
 
     left, right, interface, rect, rl, rr = wet_pair
@@ -178,8 +190,13 @@ def test_shared_covariance_table_interpolates_the_exact_jacobians(x64, wet_pair)
     J = np.asarray(_shared_jacobians(rect, left, right, interface, jnp.asarray(rl), jnp.asarray(rr)))
     n = len(rl)
     for cls in (0, 1):
-        exact = np.einsum("nik,kl,njl->nij", J[cls], shared.cov, J[cls])
-        out = point_covariances(table, rl[:, 1], rl[:, 0], d, np.full(n, bool(cls)), np.zeros(n), np.zeros((n, 3)),
-                                np.zeros(n))
+        exact = np.einsum("nik,kl,njl->nij", J[cls, ..., :14], shared.cov, J[cls, ..., :14])
+        out = point_covariances(table, rl[:, 1], rl[:, 0], d, np.full(n, bool(cls)), np.zeros(n), np.zeros(n))
         np.testing.assert_allclose(out["cov"][:, 2], exact[:, 2, 2], rtol=0.02)
         np.testing.assert_allclose(out["cov"][:, 0], exact[:, 0, 0], rtol=0.06)
+        # The point's derivative with respect to its disparity, from the same table: the matching's part of the
+        # vertical std for a disparity std of one pixel, and the whole covariance it adds
+        matched = point_covariances(table, rl[:, 1], rl[:, 0], d, np.full(n, bool(cls)), np.ones(n), np.zeros(n))
+        np.testing.assert_allclose(matched["sigma_z_match"], np.abs(J[cls, :, 2, 14]), rtol=0.01)
+        added = np.einsum("ni,nj->nij", J[cls, :, :, 14], J[cls, :, :, 14])
+        np.testing.assert_allclose(matched["cov"][:, 2] - out["cov"][:, 2], added[:, 2, 2], rtol=0.02)
