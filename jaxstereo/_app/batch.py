@@ -3,7 +3,7 @@
 Pairs run as jobs (`run_pair`, see `_batch_job`) in this process (compiled functions reused across
 pairs), in local worker processes (`workers > 1`, each traces once and shares this process's caches of
 compiled functions and rig tables, if it keeps any: the command line does), or on a Dask distributed cluster
-(`scheduler`); reference stages first, then the others. Finished pairs are skipped (resumable); a
+(`scheduler`; its workers share those caches too); reference stages first, then the others. Finished pairs are skipped (resumable); a
 failing pair is logged (`batch.log`, `summary.csv`) and skipped. Every file is written atomically.
 """
 
@@ -73,13 +73,8 @@ class _Processes:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        import jax
-
-        from .._stereo.table_cache import table_cache_folder
-
-        settings = ({name: getattr(jax.config, name) for name in _CACHE_SETTINGS}, table_cache_folder())
         self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                        initializer=_use_caches, initargs=settings)
+                                        initializer=_use_caches, initargs=_cache_settings())
 
     def run(self, jobs):
         from concurrent.futures import as_completed
@@ -96,6 +91,15 @@ _CACHE_SETTINGS = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compil
                    "jax_persistent_cache_min_entry_size_bytes")
 
 
+def _cache_settings() -> tuple[dict, Path | None]:
+    """This process's JAX persistent-cache settings (`_CACHE_SETTINGS`) and rig tables' folder, for its workers."""
+    import jax
+
+    from .._stereo.table_cache import table_cache_folder
+
+    return {name: getattr(jax.config, name) for name in _CACHE_SETTINGS}, table_cache_folder()
+
+
 def _use_caches(jax_settings: dict, table_folder) -> None:
     """A worker process's start: JAX's persistent-cache settings and the rig tables' folder of its parent."""
     import jax
@@ -109,7 +113,8 @@ def _use_caches(jax_settings: dict, table_folder) -> None:
 
 
 class _Dask:
-    """Jobs on a Dask distributed cluster (the optional `dask` extra); workers must see the files."""
+    """Jobs on a Dask distributed cluster (the optional `dask` extra); workers must see the files. Each worker
+    keeps its compiled functions and rig tables where this process does (`dask_caches.CachesOnWorkers`)."""
 
     def __init__(self, address: str):
         try:
@@ -120,6 +125,9 @@ class _Dask:
             self.client = Client(address, timeout="20s")
         except (OSError, TimeoutError, ValueError) as err:
             raise JaxStereoError(f"cannot reach the Dask scheduler at {address!r}: {err}") from None
+        from .dask_caches import CachesOnWorkers
+
+        self.client.register_plugin(CachesOnWorkers(*_cache_settings()))
 
     def run(self, jobs):
         from distributed import as_completed

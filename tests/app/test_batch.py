@@ -129,7 +129,7 @@ def test_interrupted_batch_resumes_without_redoing_finished_pairs(campaign, tmp_
     assert again.processed == 3 and again.skipped == 0
 
 
-def test_workers_and_dask_cluster_give_the_same_results(campaign, tmp_path):
+def test_workers_and_dask_cluster_give_the_same_results(campaign, tmp_path, monkeypatch):
     _, manifest, _ = campaign
     serial = run_batch(manifest, tmp_path / "serial", log=lambda _: None)
     use_table_cache(tmp_path / "tables")  # as the command line does: the workers keep their parent's folder
@@ -139,8 +139,11 @@ def test_workers_and_dask_cluster_give_the_same_results(campaign, tmp_path):
         use_table_cache(None)
     assert len(list((tmp_path / "tables").glob("rectification-*.npz"))) >= 2
     distributed = pytest.importorskip("distributed")
+    monkeypatch.setenv("JAXSTEREO_CACHE_DIR", str(tmp_path / "cli-caches"))  # the command's cache folder
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         assert main(["batch", str(manifest), "-o", str(tmp_path / "dask"), "--scheduler", cluster.scheduler_address]) == 0
+    # The Dask worker kept the rig tables it computed in the command's folder (this process computes none)
+    assert len(list((tmp_path / "cli-caches" / "tables").glob("rectification-*.npz"))) >= 2
     on_dask = _rows(tmp_path / "dask" / "summary.csv")
     for a, b in zip(serial.rows, parallel.rows):
         assert (a["test"], a["stage"], a["status"], a["points"]) == (b["test"], b["stage"], "ok", b["points"])
