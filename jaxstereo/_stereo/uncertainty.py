@@ -179,13 +179,14 @@ def _table_axes(image_size: tuple[int, int], search: tuple[int, int]) -> tuple[n
 
 
 def load_point_covariances(image_size: tuple[int, int], search: tuple[int, int]) -> None:
-    """Trace `point_covariances`' interpolation for the table of `image_size` (w, h) and `search` (first, count)
+    """Trace `point_covariances`' compiled part for the table of `image_size` (w, h) and `search` (first, count)
     pixels, and load it (JAX's persistent cache) or compile it, on zeros: what a fresh process would otherwise
     do in its first call (a tenth of a second). Thread-safe; the values are not used."""
     shape = (2, *(len(axis) for axis in _table_axes(image_size, search)), TABLE_CHANNELS)
-    jax.block_until_ready(_interpolate_table(jnp.asarray(np.zeros(shape, np.float32)),
-                                             jnp.asarray(np.zeros((3, INTERPOLATION_CHUNK), np.float32)),
-                                             jnp.asarray(np.zeros(INTERPOLATION_CHUNK, np.int32))))
+    zeros = np.zeros(INTERPOLATION_CHUNK, np.float32)
+    jax.block_until_ready(_chunk_errors(jnp.asarray(np.zeros(shape, np.float32)),
+                                        jnp.asarray(np.zeros((3, INTERPOLATION_CHUNK), np.float32)),
+                                        jnp.asarray(zeros.astype(np.int32)), jnp.asarray(zeros), jnp.asarray(zeros)))
 
 
 def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.ndarray, refracted: np.ndarray,
@@ -202,34 +203,52 @@ def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.n
     `sigma_z_level` (k,) float32 metres (the matching's and the water level's parts of the vertical std), and
     `dz_subpixel` (k,) float32 metres, the signed vertical offset the estimators' disagreement gives.
     """
+    f32 = np.float32  # covariances need no more
     origin, step = table["origin"], table["step"]
-    coords = np.stack([(v - origin[0]) / step[0], (u - origin[1]) / step[1], (disparity - origin[2]) / step[2]])
-    f32 = np.float32
+    coords = np.stack([(np.asarray(v, f32) - f32(origin[0])) / f32(step[0]),
+                       (np.asarray(u, f32) - f32(origin[1])) / f32(step[1]),
+                       (np.asarray(disparity, f32) - f32(origin[2])) / f32(step[2])])
+    per_point = (refracted.astype(np.int32), np.asarray(sigma_d, f32), np.nan_to_num(disagreement).astype(f32))
     values = jnp.asarray(table["table"].astype(f32))
-    channels = np.empty((TABLE_CHANNELS, len(v)), f32)
-    for start in range(0, len(v), INTERPOLATION_CHUNK):  # fixed-size chunks: compiled once, whatever the count
+    k = len(v)
+    out = {"cov": np.empty((k, 6), f32), **{name: np.empty(k, f32) for name in _PER_POINT_ERRORS}}
+    for start in range(0, k, INTERPOLATION_CHUNK):  # fixed-size chunks: compiled once, whatever the count
         part = slice(start, start + INTERPOLATION_CHUNK)
         count = coords[:, part].shape[1]
         pad = INTERPOLATION_CHUNK - count
-        c = np.pad(coords[:, part], ((0, 0), (0, pad))).astype(f32)
-        cls = np.pad(refracted[part].astype(np.int32), (0, pad))
-        channels[:, part] = np.asarray(_interpolate_table(values, jnp.asarray(c), jnp.asarray(cls)))[:, :count]
-    j = channels[7:10]  # (3, k): column-wise arithmetic, float32 (covariances need no more)
-    match, method = j * sigma_d.astype(f32), j * np.nan_to_num(disagreement).astype(f32)
-    cov = np.empty((len(v), 6), f32)
-    for c, (p, q) in enumerate(zip(*_PAIRS)):
-        cov[:, c] = channels[c] + match[p] * match[q] + method[p] * method[q]
-    return {"cov": cov, "sigma_z_match": np.abs(match[2]), "sigma_z_level": np.sqrt(np.maximum(channels[6], 0.0)),
-            "dz_subpixel": method[2]}
+        chunk = [jnp.asarray(np.pad(coords[:, part], ((0, 0), (0, pad))))]
+        chunk += [jnp.asarray(np.pad(a[part], (0, pad))) for a in per_point]
+        for name, result in zip(("cov", *_PER_POINT_ERRORS), _chunk_errors(values, *chunk)):
+            out[name][part] = np.asarray(result)[:count]
+    return out
 
 
 _PAIRS = ((0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2))  # the covariance's [xx, yy, zz, xy, xz, yz]
+_PER_POINT_ERRORS = ("sigma_z_match", "sigma_z_level", "dz_subpixel")
 
 
 @jax.jit
 def _interpolate_table(table, coords_t, cls):
-    """`_trilinear` with coordinates (3, k) in and values (c, k) out."""
+    """`_trilinear` with coordinates (3, C) in and values (TABLE_CHANNELS, C) out."""
     return _trilinear(table, coords_t.T, cls).T
+
+
+@jax.jit
+def _combine_errors(channels, sigma_d, disagreement):
+    """`point_covariances` on a chunk of C matches, float32, from the table's `channels` interpolated to them
+    (TABLE_CHANNELS, C) and their disparities' std and disagreement (C,): `(cov (C, 6), sigma_z_match,
+    sigma_z_level, dz_subpixel)`. (A compiled function of its own: fused with the interpolation, XLA's CPU
+    code was ten times slower than the two apart.)"""
+    j = channels[7:10]  # d(point)/d(disparity)
+    match, method = j * sigma_d, j * disagreement
+    cov = jnp.stack([channels[c] + match[p] * match[q] + method[p] * method[q]
+                     for c, (p, q) in enumerate(zip(*_PAIRS))], axis=-1)
+    return cov, jnp.abs(match[2]), jnp.sqrt(jnp.maximum(channels[6], 0.0)), method[2]
+
+
+def _chunk_errors(table, coords_t, cls, sigma_d, disagreement):
+    """`_combine_errors` of `_interpolate_table` at coordinates (3, C) of sub-tables `cls` (C,)."""
+    return _combine_errors(_interpolate_table(table, coords_t, cls), sigma_d, disagreement)
 
 
 def _trilinear(table, coords, cls):
