@@ -3,8 +3,9 @@
 Pairs run as jobs (`run_pair`, see `_batch_job`) in this process (compiled functions reused across
 pairs), in local worker processes (`workers > 1`, each traces once and shares this process's caches of
 compiled functions and rig tables, if it keeps any: the command line does), or on a Dask distributed cluster
-(`scheduler`; its workers share those caches too); reference stages first, then the others. Finished pairs are skipped (resumable); a
-failing pair is logged (`batch.log`, `summary.csv`) and skipped. Every file is written atomically.
+(`scheduler`; its workers share those caches too); reference stages first, then the others. Finished pairs
+are skipped (resumable); a failing pair is logged (`batch.log`, `summary.csv`) and skipped. Every file is
+written atomically.
 """
 
 from __future__ import annotations

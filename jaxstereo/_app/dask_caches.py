@@ -9,8 +9,8 @@ class CachesOnWorkers(WorkerPlugin):
     """Gives each worker, when it joins the cluster or starts, the submitting process's cache settings: JAX's
     persistent compilation cache (`jax_settings`, `jax.config` names to values) and the rig tables' folder
     (`table_folder`, see `table_cache.py`; None: none). Workers on other machines need those folders on a file
-    system they share (as the batch's images); where a folder cannot be written, a worker computes what it
-    needs, as without the caches."""
+    system they share (as the batch's images); where a folder cannot be written, a worker goes on without it
+    (JAX warns about the compiled functions it could not keep)."""
 
     name = "jaxstereo-caches"
 

@@ -453,8 +453,8 @@ def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offse
         rr[:, 1] += offset[v, u]
     if rl.shape[0] == 0:
         raise JaxStereoError("no matches survived: SGBM found no match in the expected depth range (no shared texture?)")
-    points, gap, submerged, ok, distance = _chunked(_triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model),
-                                                    rl, rr)
+    points, gap, submerged, ok, distance = _chunked(
+        _triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model), rl, rr)
     gap_px = gap * float(rect.K[0, 0]) / np.maximum(distance, 1e-9)
     finite = ok & np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])  # (n, 3) reduced column by column: 3x faster
     meets = finite & (gap_px <= max_ray_gap_px)

@@ -109,7 +109,8 @@ def test_shared_jacobians_match_finite_differences_of_a_numpy_reference(x64, wet
     for cls in (0, 1):
         fd = (_reference_points(np.zeros(14), rig, interface, raw_l, moved[0], cls)
               - _reference_points(np.zeros(14), rig, interface, raw_l, moved[1], cls)) / (2 * h)
-        np.testing.assert_allclose(J[cls, :, :, 14], fd, atol=2e-3 * np.abs(fd).max(), err_msg=f"disparity, class {cls}")
+        np.testing.assert_allclose(J[cls, :, :, 14], fd, atol=2e-3 * np.abs(fd).max(),
+                                   err_msg=f"disparity, class {cls}")
 
 
 def test_covariance_matrices_unpacks_the_six_terms():
