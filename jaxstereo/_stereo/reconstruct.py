@@ -220,8 +220,8 @@ _triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=4)
 def _load_in_background(rect, rig: Rig, interface, model: str, with_covariances: bool, search) -> threading.Thread:
     """Trace the chunked triangulation and, `with_covariances`, the covariance table's interpolation (for the
     `search` range), and load them (JAX's persistent cache) or compile them, on dummy values in a thread of its
-    own, while the main thread refines the matches (numpy and OpenCV): in a fresh process that is some tenths of a second
-    of tracing and loading taken off the command's time. Join it before triangulating; whatever fails here
+    own, while the main thread refines the matches (numpy and OpenCV): in a fresh process that is some tenths of a
+    second of tracing and loading taken off the command's time. Join it before triangulating; whatever fails here
     (nothing should) fails again, with its message, in the real call."""
 
     @float64
