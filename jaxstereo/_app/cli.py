@@ -548,11 +548,43 @@ def run() -> None:
     import logging
     import os
 
+    sys.stdout, sys.stderr = _OutlivesItsReader(sys.stdout), _OutlivesItsReader(sys.stderr)
     status = main()
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(status)
+
+
+class _OutlivesItsReader:
+    """The command's standard output or error, which goes on writing into nothing once the program reading its
+    pipe has closed it (`jaxstereo batch campaign.toml | head`): the report lines are the reader's to drop, the
+    survey, figures and tables are the command's to finish. Without it the first line past the reader's end
+    raises `BrokenPipeError` and the command stops there, its files half done."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def _quietly(self, method: str, *args):
+        import os
+
+        try:
+            return getattr(self._stream, method)(*args)
+        except BrokenPipeError:
+            # Point the file descriptor at the null device; the stream's buffer then flushes into it.
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, self._stream.fileno())
+            os.close(null)
+            return getattr(self._stream, method)(*args)
+
+    def write(self, text: str) -> int:
+        return self._quietly("write", text)
+
+    def flush(self) -> None:
+        self._quietly("flush")
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
 
 
 def main(argv=None) -> int:

@@ -241,3 +241,17 @@ def test_entry_point_prints_one_line_for_a_truncated_image(files, tmp_path):
         f"jaxstereo reconstruct: error: image {str(files / 'truncated.png')!r} cannot be read "
         "(corrupt, truncated or not an image)"]
     assert not (tmp_path / "s.npz").exists()
+
+
+def test_entry_point_finishes_its_files_when_the_reader_of_its_output_goes_away(tmp_path):
+    """`jaxstereo incidence-report | head -1`: the report's table is printed before the figure is drawn; with the
+    pipe's reader gone the command still writes the figure and ends as it would have, without a word."""
+    figure = tmp_path / "incidence.png"
+    proc = subprocess.Popen([sys.executable, "-m", "jaxstereo", "incidence-report", "-o", str(figure)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # the reader goes away before the command prints anything
+    with proc.stderr:
+        stderr = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 0, stderr
+    assert stderr == ""
+    assert figure.read_bytes()[:4] == b"\x89PNG"
