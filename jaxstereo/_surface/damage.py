@@ -90,26 +90,30 @@ def _zones(X, D, sign):
     A zone runs on while one end of each piece of D is on its side: where the profiles only touch (D reaches
     zero at one abscissa and turns back) it goes on, as the paper's sweep has it; it ends where D crosses to the
     other side or stays at zero over a stretch."""
-    zones = []
-    current = None  # [start, area, depth, end]
-    for k in range(len(X) - 1):
-        x0, x1, v0, v1 = X[k], X[k + 1], sign * D[k], sign * D[k + 1]
-        pieces = [(x0, x1, v0, v1)]
-        if v0 * v1 < 0:
-            xc = x0 + (x1 - x0) * v0 / (v0 - v1)  # where the difference crosses zero
-            pieces = [(x0, xc, v0, 0.0), (xc, x1, 0.0, v1)]
-        for a, b, va, vb in pieces:
-            if va > 0 or vb > 0:
-                if current is None:
-                    current = [a, 0.0, 0.0, a]
-                current[1] += 0.5 * (max(va, 0.0) + max(vb, 0.0)) * (b - a)
-                current[2], current[3] = max(current[2], va, vb), b
-            elif current is not None and b > a:  # a stretch at zero (not one abscissa's two sides) ends it
-                zones.append(Zone(current[0], current[3], current[3] - current[0], current[1], current[2]))
-                current = None
-    if current is not None:
-        zones.append(Zone(current[0], current[3], current[3] - current[0], current[1], current[2]))
-    return zones
+    X, v = np.asarray(X, dtype=np.float64), sign * np.asarray(D, dtype=np.float64)
+    x0, x1, v0, v1 = X[:-1], X[1:], v[:-1], v[1:]
+    # A piece whose ends lie on opposite sides is cut where it crosses zero: pieces (a, b, va, vb), in order.
+    crosses = v0 * v1 < 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        xc = np.where(crosses, x0 + (x1 - x0) * v0 / np.where(crosses, v0 - v1, 1.0), x1)
+    a = np.stack([x0, xc], axis=1).ravel()
+    b = np.stack([xc, x1], axis=1).ravel()
+    va = np.stack([v0, np.zeros_like(v0)], axis=1).ravel()
+    vb = np.stack([np.where(crosses, 0.0, v1), v1], axis=1).ravel()
+    real = np.stack([np.ones_like(crosses), crosses], axis=1).ravel()  # the second piece exists where it crosses
+    a, b, va, vb = a[real], b[real], va[real], vb[real]
+    on_side = (va > 0) | (vb > 0)
+    ends = ~on_side & (b > a)  # a stretch at zero or beyond (not one abscissa's two sides) ends a zone
+    group = np.cumsum(ends)[on_side]  # the zone each piece on the side belongs to
+    a, b, va, vb = a[on_side], b[on_side], va[on_side], vb[on_side]
+    if a.size == 0:
+        return []
+    first = np.flatnonzero(np.diff(group, prepend=-1))
+    last = np.append(first[1:] - 1, a.size - 1)
+    area = np.add.reduceat(0.5 * (np.maximum(va, 0.0) + np.maximum(vb, 0.0)) * (b - a), first)
+    depth = np.maximum.reduceat(np.maximum(va, vb), first)
+    return [Zone(float(s), float(e), float(e - s), float(ar), float(dp))
+            for s, e, ar, dp in zip(a[first], b[last], area, depth)]
 
 
 def _monotonic_runs(X: np.ndarray, Z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import io
 import json
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -159,20 +160,25 @@ def _column_mean(z: np.ndarray) -> np.ndarray:
 ON_SLOPE_DN50 = 1.0  # an initial cross-section follows the design slope when its median distance is within 1 Dn50
 
 
-def _off_the_slope(x, z, cot, origin, zone, dn50) -> str:
-    """Why an initial cross-section is not one of the structure's (empty when it is): over the active zone,
-    its median distance from the design slope line must be within `ON_SLOPE_DN50` Dn50. Sections past the
-    sides of the model (the bare floor, a flume wall) fail this."""
-    ok = np.isfinite(z)
-    X, Z = to_slope_frame(x[ok], z[ok], cot, origin)
-    inside = (X >= zone[0]) & (X <= zone[1])
-    if inside.sum() < 3:
-        return "no initial data in the active zone"
-    distance = float(np.median(np.abs(Z[inside])))
-    if distance > ON_SLOPE_DN50 * dn50:
-        return (f"the initial section lies {1e3 * distance:.0f} mm (median) off the design slope: not a "
-                "cross-section of the structure")
-    return ""
+def _off_the_slope(x, z, cot, origin, zone, dn50) -> dict[int, str]:
+    """Why each initial cross-section (the rows of `z` (m, n) over the abscissae `x` (n,), metres) is not one of
+    the structure's, for those that are not (row -> reason): over the active zone, its median distance from the
+    design slope line must be within `ON_SLOPE_DN50` Dn50. Sections past the sides of the model (the bare floor,
+    a flume wall) fail this."""
+    X, Z = to_slope_frame(np.broadcast_to(x, z.shape), z, cot, origin)
+    inside = np.isfinite(z) & (X >= zone[0]) & (X <= zone[1])
+    count = inside.sum(axis=1)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # rows without data in the zone: reported below
+        distance = np.nanmedian(np.where(inside, np.abs(Z), np.nan), axis=1)
+    reasons = {}
+    for r in range(z.shape[0]):
+        if count[r] < 3:
+            reasons[r] = "no initial data in the active zone"
+        elif distance[r] > ON_SLOPE_DN50 * dn50:
+            reasons[r] = (f"the initial section lies {1e3 * distance[r]:.0f} mm (median) off the design slope: not "
+                          "a cross-section of the structure")
+    return reasons
 
 
 def _section_rows(before: DEM, after: DEM, cot, origin, zone, dn50, stretch):
@@ -182,11 +188,8 @@ def _section_rows(before: DEM, after: DEM, cot, origin, zone, dn50, stretch):
     covered = both.sum(axis=1) >= 0.2 * both.shape[1]
     if not covered.any():
         raise JaxStereoError("the before and after surfaces do not overlap (no cross-section with data in both)")
-    reasons = {}
-    for r in np.nonzero(covered)[0]:
-        why = _off_the_slope(before.x, before.z[r], cot, origin, zone, dn50)
-        if why:
-            reasons[r] = why
+    rows = np.nonzero(covered)[0]
+    reasons = {rows[k]: why for k, why in _off_the_slope(before.x, before.z[rows], cot, origin, zone, dn50).items()}
     structure = covered.copy()
     structure[list(reasons)] = False
     if not structure.any():

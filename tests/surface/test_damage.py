@@ -81,6 +81,40 @@ def test_two_pits_that_touch_at_one_point_are_one_zone_and_a_stretch_between_spl
             assert dmg.A_e == pytest.approx(0.1 * 0.04 / 2, abs=1e-12) and dmg.L_e == pytest.approx(0.1, abs=1e-12)
 
 
+def _zones_one_piece_at_a_time(X, D, sign):
+    """The sweep of `damage._zones` written as a loop over the pieces (a reference): (start, end, area, depth)."""
+    zones, current = [], None
+    for x0, x1, v0, v1 in zip(X[:-1], X[1:], sign * D[:-1], sign * D[1:]):
+        pieces = [(x0, x1, v0, v1)]
+        if v0 * v1 < 0:
+            xc = x0 + (x1 - x0) * v0 / (v0 - v1)
+            pieces = [(x0, xc, v0, 0.0), (xc, x1, 0.0, v1)]
+        for a, b, va, vb in pieces:
+            if va > 0 or vb > 0:
+                current = current or [a, a, 0.0, 0.0]
+                current[1:] = [b, current[2] + 0.5 * (max(va, 0) + max(vb, 0)) * (b - a), max(current[3], va, vb)]
+            elif current is not None and b > a:
+                zones.append(tuple(current))
+                current = None
+    return zones + ([tuple(current)] if current is not None else [])
+
+
+def test_zones_match_a_loop_over_the_pieces_on_random_differences():
+    """Repeated abscissae (an envelope's jump), zeros (profiles that touch) and crossings, in any mix."""
+    from jaxstereo._surface.damage import _zones
+
+    rng = np.random.default_rng(5)
+    for trial in range(400):
+        X = np.sort(rng.uniform(0.0, 1.0, rng.integers(2, 40)))
+        X = np.repeat(X, rng.integers(1, 3, X.size))
+        D = np.where(rng.uniform(size=X.size) < 0.3, 0.0, rng.normal(size=X.size))
+        for sign in (-1.0, 1.0):
+            expected = _zones_one_piece_at_a_time(X, D, sign)
+            got = [(z.start, z.end, z.area, z.depth) for z in _zones(X, D, sign)]
+            assert len(got) == len(expected), trial
+            np.testing.assert_allclose(np.reshape(got, (-1, 4)), np.reshape(expected, (-1, 4)), rtol=1e-12, atol=1e-15)
+
+
 def test_pure_accretion_gives_zero_damage():
     X = np.unique(np.concatenate([np.linspace(-0.5, 0.5, 501), [-0.1, -0.025, 0.025, 0.1]]))
     Z = -_notch(X, 0.0, 0.2, 0.05, 0.03)  # a mound
