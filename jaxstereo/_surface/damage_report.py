@@ -6,7 +6,6 @@ import csv
 import dataclasses
 import io
 import json
-import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -18,6 +17,7 @@ from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike, Vector2
 from .damage import DemDamage, ProfileDamage, damage_level, dem_damage, profile_damage, slope_abscissa, to_slope_frame
 from .grid import DEM
+from .nan_median import nan_median
 from .seen_change import SEEN_TOLERANCE_M, change_where_seen
 
 if TYPE_CHECKING:
@@ -119,15 +119,14 @@ def despike(dem: DEM, tolerance_m: float) -> DEM:
     of them, takes the nearest neighbour value. Such cells are survey outliers (mismatches at the edges of
     armour units), not surface; steep but continuous surfaces (the walls of a hole) are left alone."""
     z = dem.z
-    padded = np.pad(z, 1, constant_values=np.nan)
-    shifts = [padded[i : i + z.shape[0], j : j + z.shape[1]] for i in range(3) for j in range(3) if (i, j) != (1, 1)]
-    stack = np.stack(shifts)
-    finite = np.isfinite(stack)
-    high = np.where(finite, stack, -np.inf).max(axis=0)
-    low = np.where(finite, stack, np.inf).min(axis=0)
-    enough = finite.sum(axis=0) >= 5
-    peak = enough & np.isfinite(z) & (z - high > tolerance_m)
-    pit = enough & np.isfinite(z) & (low - z > tolerance_m)
+    finite = np.isfinite(z)
+    around = np.ones((3, 3), bool)
+    around[1, 1] = False  # the 8 neighbours
+    high = ndimage.maximum_filter(np.where(finite, z, -np.inf), footprint=around, mode="constant", cval=-np.inf)
+    low = ndimage.minimum_filter(np.where(finite, z, np.inf), footprint=around, mode="constant", cval=np.inf)
+    enough = ndimage.correlate(finite.astype(np.int32), around.astype(np.int32), mode="constant") >= 5
+    peak = enough & finite & (z - high > tolerance_m)
+    pit = enough & finite & (low - z > tolerance_m)
     return DEM(dem.x, dem.y, np.where(peak, high, np.where(pit, low, z)), dem.spacing)
 
 
@@ -168,9 +167,7 @@ def _off_the_slope(x, z, cot, origin, zone, dn50) -> dict[int, str]:
     X, Z = to_slope_frame(np.broadcast_to(x, z.shape), z, cot, origin)
     inside = np.isfinite(z) & (X >= zone[0]) & (X <= zone[1])
     count = inside.sum(axis=1)
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # rows without data in the zone: reported below
-        distance = np.nanmedian(np.where(inside, np.abs(Z), np.nan), axis=1)
+    distance = nan_median(np.where(inside, np.abs(Z), np.nan), axis=1)
     reasons = {}
     for r in range(z.shape[0]):
         if count[r] < 3:

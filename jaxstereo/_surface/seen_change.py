@@ -27,6 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from .grid import DEM
+from .nan_median import nan_median
 
 SEEN_TOLERANCE_M = 0.0  # a cell is seen wholly when no part of it went unseen in either survey
 
@@ -61,7 +62,7 @@ def change_where_seen(before: DEM, after: DEM, tolerance_m: float, reach_m: floa
     around = np.stack([padded[row + i, col + j] for i in range(3) for j in range(3)])
     some = np.isfinite(around).any(axis=0)
     estimate = change[rows[row, col], cols[row, col]]  # the nearest seen cell's
-    estimate[some] = np.nanmedian(around[:, some], axis=0)
+    estimate[some] = nan_median(around[:, some], axis=0)
     z = after.z.copy()
     z[row, col] = before.z[row, col] + estimate
     return dataclasses.replace(after, z=z), carried

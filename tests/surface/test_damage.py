@@ -348,3 +348,23 @@ def test_overhanging_faces_sampled_apart_add_no_false_erosion():
     eroded = sum(zone.area for zone in dmg.erosion)
     assert abs(eroded - area) < 0.01 * area + 1e-7
     assert dmg.S < 0.1  # the largest sliver
+
+
+def test_despike_replaces_cells_beyond_all_eight_neighbours_as_a_stack_of_shifts_finds_them():
+    from jaxstereo._surface.damage_report import despike
+
+    rng = np.random.default_rng(8)
+    z = np.cumsum(rng.normal(0.0, 0.002, (40, 50)), axis=1)
+    spikes = rng.uniform(size=z.shape) < 0.05
+    z[spikes] += rng.choice([-0.05, 0.05], size=spikes.sum())
+    z[rng.uniform(size=z.shape) < 0.15] = np.nan
+    shifts = np.stack([np.pad(z, 1, constant_values=np.nan)[i : i + 40, j : j + 50]
+                       for i in range(3) for j in range(3) if (i, j) != (1, 1)])
+    finite = np.isfinite(shifts)
+    high, low = np.where(finite, shifts, -np.inf).max(axis=0), np.where(finite, shifts, np.inf).min(axis=0)
+    enough = finite.sum(axis=0) >= 5
+    with np.errstate(invalid="ignore"):
+        peak, pit = enough & (z - high > 0.01), enough & (low - z > 0.01)
+    assert peak.sum() > 5 and pit.sum() > 5
+    got = despike(DEM(np.arange(50.0), np.arange(40.0), z, 1.0), 0.01).z
+    np.testing.assert_array_equal(got, np.where(peak, high, np.where(pit, low, z)))
