@@ -84,24 +84,30 @@ def to_slope_frame(x, z, cot: float, origin=(0.0, 0.0)):
     return dx * t[0] + dz * t[1], dx * n[0] + dz * n[1]
 
 
-def _zones(X, D, sign):
-    """Zones where `sign * D > 0` on the piecewise-linear difference D(X), crossing points inserted.
+def _zones(X, D) -> tuple[list[Zone], list[Zone]]:
+    """Erosion zones (where D < 0) and accretion zones (D > 0) on the piecewise-linear difference D(X), crossing
+    points inserted.
 
     A zone runs on while one end of each piece of D is on its side: where the profiles only touch (D reaches
     zero at one abscissa and turns back) it goes on, as the paper's sweep has it; it ends where D crosses to the
     other side or stays at zero over a stretch."""
-    X, v = np.asarray(X, dtype=np.float64), sign * np.asarray(D, dtype=np.float64)
-    x0, x1, v0, v1 = X[:-1], X[1:], v[:-1], v[1:]
+    X, D = np.asarray(X, dtype=np.float64), np.asarray(D, dtype=np.float64)
+    x0, x1, v0, v1 = X[:-1], X[1:], D[:-1], D[1:]
     # A piece whose ends lie on opposite sides is cut where it crosses zero: pieces (a, b, va, vb), in order.
     crosses = v0 * v1 < 0
     with np.errstate(invalid="ignore", divide="ignore"):
         xc = np.where(crosses, x0 + (x1 - x0) * v0 / np.where(crosses, v0 - v1, 1.0), x1)
-    a = np.stack([x0, xc], axis=1).ravel()
-    b = np.stack([xc, x1], axis=1).ravel()
-    va = np.stack([v0, np.zeros_like(v0)], axis=1).ravel()
-    vb = np.stack([np.where(crosses, 0.0, v1), v1], axis=1).ravel()
     real = np.stack([np.ones_like(crosses), crosses], axis=1).ravel()  # the second piece exists where it crosses
-    a, b, va, vb = a[real], b[real], va[real], vb[real]
+    a = np.stack([x0, xc], axis=1).ravel()[real]
+    b = np.stack([xc, x1], axis=1).ravel()[real]
+    va = np.stack([v0, np.zeros_like(v0)], axis=1).ravel()[real]
+    vb = np.stack([np.where(crosses, 0.0, v1), v1], axis=1).ravel()[real]
+    return _zones_on_side(a, b, -va, -vb), _zones_on_side(a, b, va, vb)
+
+
+def _zones_on_side(a, b, va, vb) -> list[Zone]:
+    """The zones where the pieces (from `a` to `b`, values `va` to `vb`, in order along the slope; a piece's ends
+    on one side of zero or at it) are positive."""
     on_side = (va > 0) | (vb > 0)
     ends = ~on_side & (b > a)  # a stretch at zero or beyond (not one abscissa's two sides) ends a zone
     group = np.cumsum(ends)[on_side]  # the zone each piece on the side belongs to
@@ -222,8 +228,7 @@ def profile_damage(initial: tuple[ArrayLike, ArrayLike], final: tuple[ArrayLike,
     D[0] = D[-1] = np.nan  # the sweep starts at lo and ends at hi: nothing from beyond them
     known = np.isfinite(D)
     X, D = X[known], D[known]
-    erosion = _zones(X, D, -1.0)
-    accretion = _zones(X, D, +1.0)
+    erosion, accretion = _zones(X, D)
     biggest = max(erosion, key=lambda zn: zn.area) if erosion else Zone(0.0, 0.0, 0.0, 0.0, 0.0)
     return ProfileDamage(erosion, accretion, biggest.area, biggest.length, biggest.depth,
                          biggest.area / dn50**2, biggest.depth / dn50, (float(lo), float(hi)))
