@@ -15,3 +15,4 @@ def test_nan_median_equals_numpys_to_the_last_bit_with_any_share_of_gaps():
                 warnings.simplefilter("ignore", RuntimeWarning)  # numpy's "All-NaN slice"
                 expected = np.nanmedian(values, axis=axis)
             np.testing.assert_array_equal(nan_median(values, axis), expected)
+    assert np.isnan(nan_median(np.zeros((3, 0)), axis=1)).all() and nan_median(np.zeros((3, 0)), axis=1).shape == (3,)
