@@ -115,9 +115,11 @@ def trial(seed: int, size=(864, 576), log=print) -> list[dict]:
     rig = perturbed_rig(js.Rig(true_left, true_right), rng.standard_normal(14) * TRIAL_STD)
     rig = js.Rig(rig.left, rig.right, None, calibration_record(cov))
     surveys = [("I", SWL, None), ("I", SWL + 0.02, None), ("II", SWL, STAGES[1][1]), ("III", SWL, STAGES[2][1])]
-    dems, truths = [], []
+    dems, truths, scenes = [], [], {}
     for name, level, damage in surveys:
-        scene = js.build_scene(js.Breakwater(seed=seed, damage=damage))
+        if name not in scenes:  # the repeat survey of stage I sees the same rocks
+            scenes[name] = js.build_scene(js.Breakwater(seed=seed, damage=damage))
+        scene = scenes[name]
         water = js.Interface(level)
         images = [jpeg(js.render_view(c, scene.heightfield, water).image) for c in (true_left, true_right)]
         given = level + rng.standard_normal() * LEVEL_STD_M
