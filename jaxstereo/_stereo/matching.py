@@ -132,7 +132,7 @@ def _cross_check(disparity, right_disparity, tolerance_px):
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,
                      window: int = 31, small_window: int | None = 15, sigma_window: int = 5,
-                     subpixel: bool = True, with_sigma: bool = True) -> Subpixel:
+                     subpixel: bool = True, with_sigma: bool = True, waterline: np.ndarray | None = None) -> Subpixel:
     """Sub-pixel disparities by Lucas-Kanade over a `window` x `window` patch, from whole-pixel bases, and
     each disparity's standard deviation from the fit's own residuals.
 
@@ -153,6 +153,16 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     curved surface (rubble) whose relief the large patch averages over. On the POV-Ray flume's rubble the 31 px
     patch smooths rocks 0.6 Dn50 wide; the 15 px patch there brings the wet and dry surveys' median difference
     from 1.65 to 1.3 mm, while the flat board keeps the large patch.
+    With a `waterline` (the water plane's own disparity at each pixel, `rectify.waterline_disparity`), a patch
+    whose matches lie on both sides of the water keeps its fitted value but not the fit's standard deviation
+    alone: the disparity changes its slope where the surface leaves the water (refraction flattens what lies
+    below), and the fit's std assumes one shift and one plane. There the std is the larger of the fit's and the
+    small patch's (SGBM's block's without a small patch). On the POV-Ray flume's nadir board, within 15 mm of the
+    water level, the fitted values were off by 1.2-1.4 mm RMS against stds of 0.7-1.0 mm (72-85 % within 2
+    sigma; the rest of the board 0.6-1.1 mm, 94 %); with the small patch's std there 87-98 % (RMS std 1.0-1.6
+    mm), and 96.7 % (was 82.4 %) at the oblique board's waterline corner. SGBM's block std there was 2-3 times
+    the error; dropping the fit for the small patch or SGBM's value covered the error too but raised the
+    boards' submerged RMSE from 1.20 to 1.29 mm (nadir) and from 0.65 to 0.82 mm (oblique).
     Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them. The work runs on bands of
     rows, one per core (`map_row_bands`), with the whole image's values (1.2 -> 0.73 s on the development
     flume's 1728x1152 pair, 2 cores).
@@ -176,7 +186,8 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     **Arguments:** rectified `left`, `right` images (grey or RGB, uint8); `disparity` (h, w) pixels, NaN for
     no match (`x_right = x_left - d`); `row_offset` (h, w) pixels or None; `window`, `small_window` (None:
     the large one only) odd patch widths, pixels; `subpixel` False keeps SGBM's
-    values; `with_sigma` False skips the standard deviation and the disagreement.
+    values; `with_sigma` False skips the standard deviation and the disagreement; `waterline` (h, w) pixels or
+    None (a dry survey, or one rectified in air).
 
     **Returns:** a `Subpixel`: the refined `disparity` (h, w), its standard deviation `sigma` (h, w) and the
     estimators' `disagreement` (h, w), all pixels, NaN where the input was NaN; `sigma` and `disagreement` are
@@ -196,10 +207,12 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     shift = float(np.median(np.floor(d0[valid]))) if valid.any() else 0.0  # keeps the float32 sums' k terms small
     v = np.arange(h, dtype=np.float32)[:, None] - np.float32(h // 2)  # rows from the image's centre
     settings = (window, small_window, sigma_window, subpixel, with_sigma)
+    above = None if waterline is None else valid & (d0 > waterline)  # matches above the water
 
     def band(start: int, stop: int) -> Subpixel:
         rows_ = slice(start, stop)
-        return _refine_rows(L[rows_], Rimg, gradient, d0[rows_], valid[rows_], rows[rows_], v[rows_], shift, *settings)
+        return _refine_rows(L[rows_], Rimg, gradient, d0[rows_], valid[rows_], rows[rows_], v[rows_], shift, *settings,
+                            above=None if above is None else above[rows_])
 
     # Each result depends on the rows within two windows' half-widths (a window's sums, then `_disagreement`'s
     # window over them): bands of rows extended by that much give the whole image's values.
@@ -208,11 +221,11 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
 
 
 def _refine_rows(L, Rimg, gradient, d0, valid, rows, v, shift: float, window: int, small_window: int | None,
-                 sigma_window: int, subpixel: bool, with_sigma: bool) -> Subpixel:
+                 sigma_window: int, subpixel: bool, with_sigma: bool, above=None) -> Subpixel:
     """`refine_disparity` on a band of rows: the left image's `L` (b, w, c) float32, SGBM's disparities `d0`
     (b, w) (0 where not `valid`), the right image's rows `rows` (b, w) to sample (whole, absolute) in the whole
     right image `Rimg` (h, w, c) and its horizontal `gradient`, the band's rows `v` (b, 1) from the image's
-    centre, and the sums' disparity `shift` (px)."""
+    centre, the sums' disparity `shift` (px), and the matches `above` the water (b, w) bool, or None."""
     w = d0.shape[1]
     columns = np.arange(w, dtype=np.float32)[None, :]
     weight = valid.astype(np.float32)
@@ -235,23 +248,31 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, v, shift: float, window: in
         zero = None if sigma_sgbm is None else np.zeros_like(d0)
         return Subpixel(_masked(d0, valid), _masked(sigma_sgbm, valid), _masked(zero, valid))
     plane_terms = _plane_terms(d0, weight, shift, v)
-    refined, sigma_refined, keep = _refine_in_windows(products, (block, block_at_sgbm[1]), d0, shift, fraction,
-                                                      plane_terms, valid, window, channels, with_sigma, v)
+    above = None if above is None else above.astype(np.float32)
+    refined, sigma_refined, keep, straddles = _refine_in_windows(products, (block, block_at_sgbm[1]), d0, shift,
+                                                                 fraction, plane_terms, valid, window, channels,
+                                                                 with_sigma, v, above)
     if small_window is not None and small_window < window:
         # Where the surface is curved within the large window (rubble), its fit averages over the relief; the
         # small window's fit is taken where the two disagree by more than their difference's noise.
-        small, sigma_small, keep_small = _refine_in_windows(products, (block, block_at_sgbm[1]), d0, shift, fraction,
-                                                            plane_terms, valid, small_window, channels, True, v)
+        small, sigma_small, keep_small, straddles_small = _refine_in_windows(
+            products, (block, block_at_sgbm[1]), d0, shift, fraction, plane_terms, valid, small_window, channels, True,
+            v, above)
         large_sigma = sigma_refined if sigma_refined is not None else np.zeros_like(small)
         noise = np.sqrt(np.maximum(sigma_small**2 - large_sigma**2, 0.0))
         use_small = keep_small & (~keep | ~(np.abs(refined - small) <= WINDOW_AGREEMENT * noise))
         refined = np.where(use_small, small, refined)
         if sigma_refined is not None:
             sigma_refined = np.where(use_small, sigma_small, sigma_refined)
+        if straddles is not None:
+            straddles = np.where(use_small, straddles_small, straddles)
         keep = keep | use_small
     sigma = disagreement = None
     if with_sigma:
         sigma = np.where(keep, sigma_refined, sigma_sgbm)
+        if straddles is not None:  # a patch across the waterline: see `refine_disparity`
+            bound = sigma_small if small_window is not None and small_window < window else sigma_sgbm
+            sigma = np.where(keep & straddles, np.maximum(sigma, bound), sigma)
         disagreement = _disagreement(d0, refined, keep, sigma_sgbm, window, sigma_window)
     return Subpixel(_masked(np.where(keep, refined, d0), valid), _masked(sigma, valid), _masked(disagreement, valid))
 
@@ -260,12 +281,14 @@ WINDOW_AGREEMENT = 3.0  # the large window's value stands where the small one's 
 
 
 def _refine_in_windows(products, block, d0, shift, fraction, plane_terms, valid, window: int, channels: int,
-                       with_sigma: bool, v):
+                       with_sigma: bool, v, above=None):
     """Lucas-Kanade over `window` x `window` patches (see `refine_disparity`): the refined disparities (h, w),
-    their standard deviations (h, w, or None without `with_sigma`), and where they are kept (h, w) bool: the
+    their standard deviations (h, w, or None without `with_sigma`), where they are kept (h, w) bool: the
     patch's SGBM disparities lie within `MAX_SPREAD_PX` of their plane (`plane_terms`, see `_plane_terms`), it
     is at least half matched, and the refined value stays within 1 px of SGBM's and fits SGBM's own block
-    (`block`: its window fit and its residual variance at SGBM's values; `_fits_block`)."""
+    (`block`: its window fit and its residual variance at SGBM's values; `_fits_block`), and where the patch's
+    matches lie on both sides of the water (h, w) bool (`above` (h, w) float32, 1 for a match above it; None:
+    no water, and None returned)."""
     # Each pixel's equation is linearised about both of its whole-pixel bases, weighted by its SGBM fraction,
     # before the window sums: blending the two windows' solutions with the centre pixel's fraction instead
     # carried that one fraction's noise (SGBM's, 0.3 px) into the result, times the two linearisations'
@@ -288,7 +311,11 @@ def _refine_in_windows(products, block, d0, shift, fraction, plane_terms, valid,
     refined = fit[2] + shift - (slope[0] * centroid[0] + slope[1] * centroid[1])
     keep = (valid & (spread <= MAX_SPREAD_PX) & (count >= 0.5 * window * window) & (np.abs(refined - d0) < 1.0)
             & _fits_block(*block, refined - shift))
-    return refined, sigma_refined, keep
+    straddles = None
+    if above is not None:
+        emerged = cv2.boxFilter(above, -1, box, normalize=False)  # whole numbers, exact in float32
+        straddles = (emerged > 0.5) & (emerged < count - 0.5)
+    return refined, sigma_refined, keep, straddles
 
 
 def _plane_terms(d0, weight, shift: float, v):

@@ -36,7 +36,7 @@ from .._geometry.vectors import norm3
 from .epipolar import disparity_bounds, exact_row_offset, triangulate_exact
 from .matching import MatchOptions, Subpixel, disparity_search_range, refine_disparity, sgbm_disparity
 from .photometric import MAX_RESIDUAL_RATIO, photometric_outliers
-from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, remap
+from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, remap, waterline_disparity
 from .survey import Survey
 from .table_cache import cached_tables
 from .uncertainty import SharedErrors, load_point_covariances, point_covariances, shared_covariance_table, shared_errors
@@ -351,7 +351,8 @@ def reconstruct(
     offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None
     subpixel = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
                                 options.subpixel_small_window, sigma_window=options.match.block_size,
-                                subpixel=options.subpixel, with_sigma=options.uncertainty)
+                                subpixel=options.subpixel, with_sigma=options.uncertainty,
+                                waterline=waterline_disparity(rect))
     disparity, undetermined = _drop_undetermined(subpixel, options.max_sigma_disparity_px)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
     photometric = 0

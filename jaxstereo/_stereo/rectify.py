@@ -174,6 +174,29 @@ def rectification_maps(rect: Rectification, camera: Camera, side: int) -> tuple[
     return maps[0], maps[1]
 
 
+def waterline_disparity(rect: Rectification) -> np.ndarray | None:
+    """The disparity (h, w) float32 px, at each left rectified pixel, of the water plane's own points in a "water"
+    rectification (None in "air"): a match with a larger disparity lies above the water, a smaller one below.
+
+    A point on the plane is where both real rays cross it, so its rectified pixels are its projections through the
+    rectified virtual cameras: a plane seen by two cameras that share `K` and `R`, whose disparity is
+    `f B / depth`, affine in the pixel. (A point above the plane: its two rays cross the plane past it, beyond each
+    other, and its disparity is larger.)"""
+    if rect.mode != "water" or rect.interface is None:
+        return None
+    w, h = rect.size
+    K, R, centers = (np.asarray(a, dtype=np.float64) for a in (rect.K, rect.R, rect.centers))
+    normal = np.asarray(rect.interface.normal, dtype=np.float64)
+    height = float(rect.interface.level) - normal @ centers[0]  # < 0: the camera is above the water
+    baseline = float((R @ (centers[1] - centers[0]))[0])  # along the rectified rows
+    # Along a left rectified pixel's ray r = R^T K^-1 (u, v, 1), the plane lies at depth height / (n . r).
+    a = R @ normal
+    a = np.linalg.solve(K.T, a)  # n . r = a . (u, v, 1)
+    u = np.arange(w, dtype=np.float64)[None, :]
+    v = np.arange(h, dtype=np.float64)[:, None]
+    return (K[0, 0] * baseline * (a[0] * u + a[1] * v + a[2]) / height).astype(np.float32)
+
+
 MAP_STEP = 8
 
 

@@ -133,3 +133,25 @@ def test_bands_of_rows_on_threads_give_the_whole_images_values(monkeypatch):
     monkeypatch.setattr(matching, "map_row_bands", lambda fn, h, halo: real_map(fn, h, halo - 1))
     short = refine()
     assert not all(np.array_equal(a, b, equal_nan=True) for a, b in zip(whole, short))
+
+
+def test_a_patch_across_the_waterline_keeps_its_value_and_takes_the_larger_std():
+    """With a waterline through the pair (the matches right of column 160 above the water), the values are the
+    ones without it; patches across the line (within 15 px of it) take the larger of their own std and the small
+    patch's; away from the line the std is unchanged."""
+    left, right, start, _ = _inclined_pair(seed=2)
+    waterline = np.where(np.arange(W)[None, :] >= 160, start - 1.0, start + 1.0).astype(np.float32)
+    plain = refine_disparity(left, right, start, window=31, small_window=15)
+    split = refine_disparity(left, right, start, window=31, small_window=15, waterline=waterline)
+    small = refine_disparity(left, right, start, window=15, small_window=None)
+    np.testing.assert_array_equal(split.disparity, plain.disparity)
+    np.testing.assert_array_equal(split.disagreement, plain.disagreement)
+    u = np.arange(W)[None, :].repeat(H, axis=0)
+    inner = (np.arange(H)[:, None] >= 20) & (np.arange(H)[:, None] < H - 20)
+    across, away = inner & (np.abs(u - 159.5) < 15), inner & (np.abs(u - 159.5) > 16) & (u > 40) & (u < W - 40)
+    np.testing.assert_array_equal(split.sigma[away], plain.sigma[away])
+    # Where both patch sizes kept their fits (else the standalone small patch reports SGBM's std)
+    refined = across & (plain.disparity != start) & (small.disparity != start)
+    assert refined.sum() > 0.9 * across.sum()
+    np.testing.assert_allclose(split.sigma[refined], np.maximum(plain.sigma, small.sigma)[refined], rtol=1e-6)
+    assert np.mean(split.sigma[refined] > plain.sigma[refined]) > 0.5  # the small patch's std is the larger
