@@ -566,11 +566,11 @@ class _OutlivesItsReader:
         self._stream = stream
 
     def _quietly(self, method: str, *args):
-        import os
-
         try:
             return getattr(self._stream, method)(*args)
         except BrokenPipeError:
+            import os
+
             # Point the file descriptor at the null device; the stream's buffer then flushes into it.
             null = os.open(os.devnull, os.O_WRONLY)
             os.dup2(null, self._stream.fileno())
