@@ -93,17 +93,17 @@ def _bare_sgbm(m, repeat: int) -> float:
     from jaxstereo._calibration.rig import load_rig
     from jaxstereo._geometry.interface import Interface
     from jaxstereo._stereo.epipolar import disparity_bounds
+    from jaxstereo._stereo.match_ahead import remap
     from jaxstereo._stereo.matching import MatchOptions, disparity_search_range, sgbm_disparity
-    from jaxstereo._stereo.reconstruct import _grey
-    from jaxstereo._stereo.rectify import rectification_maps, rectify, remap
+    from jaxstereo._stereo.rectify import rectification_maps, rectify
 
     rig = load_rig(m.rig)
     pair = m.pairs[0]
     with jax.enable_x64(True):
         rect = rectify(rig.left, rig.right, Interface(pair.water_level), "air")
         maps = [rectification_maps(rect, cam, s) for s, cam in enumerate((rig.left, rig.right))]
-        a = _grey(remap(read_image(pair.left), maps[0]))
-        b = _grey(remap(read_image(pair.right), maps[1]))
+        a, b = (remap(read_image(path, grayscale=True), side_maps)
+                for path, side_maps in ((pair.left, maps[0]), (pair.right, maps[1])))
         bounds = disparity_bounds(rect, rig.left, rig.right, Interface(pair.water_level), *(m.z_range or (-0.05, 0.45)))
         lo, num = disparity_search_range(*bounds, MatchOptions().margin_px)
     times = []

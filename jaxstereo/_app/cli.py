@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 from pathlib import Path
 
@@ -193,7 +194,8 @@ def _cmd_reconstruct(args) -> int:
                      f"{100 * points.submerged.mean():.0f}% submerged")
             drawing.append(side.submit(survey_preview_png, points, rig.image_size, title))
 
-        survey, summary = reconstruct(left, right, rig, args.water_level, options, on_points=draw)
+        survey, summary = reconstruct(left, right, rig, args.water_level, options, on_points=draw,
+                                      match_ahead=getattr(args, "match_ahead", None))
         start = time.perf_counter()
         written = side.submit(_write_survey_files, survey, output, args.ply)
         png = drawing[0].result()
@@ -546,7 +548,6 @@ def run() -> None:
     its status. The interpreter's own teardown (JAX's runtime, every module, the survey's arrays) would take
     another half second after a survey; every file the command writes is closed and renamed by then."""
     import logging
-    import os
 
     sys.stdout, sys.stderr = _OutlivesItsReader(sys.stdout), _OutlivesItsReader(sys.stderr)
     status = main()
@@ -569,8 +570,6 @@ class _OutlivesItsReader:
         try:
             return getattr(self._stream, method)(*args)
         except BrokenPipeError:
-            import os
-
             # Point the file descriptor at the null device; the stream's buffer then flushes into it.
             null = os.open(os.devnull, os.O_WRONLY)
             os.dup2(null, self._stream.fileno())
@@ -605,6 +604,7 @@ def main(argv=None) -> int:
         "damage": _cmd_damage,
     }[args.command]
     args.images_read_ahead = _read_images_ahead(args)
+    args.match_ahead = _match_ahead(args)
     import jax
 
     from .._stereo.table_cache import use_table_cache
@@ -635,19 +635,43 @@ def _read_images_ahead(args) -> dict:
     return reading
 
 
+def _match_ahead(args):
+    """`reconstruct`'s head start (`MatchAhead`): its pair matched on a thread from the plan an earlier command
+    with the same rig file and settings kept, while JAX is imported; None for the other commands and without the
+    disk caches."""
+    root = _cache_root()
+    if args.command != "reconstruct" or root is None:
+        return None
+    from .._stereo.match_ahead import MatchAhead, plan_path
+    from .._stereo.table_cache import source_digest
+
+    arguments = {"water_level": args.water_level, "z_range": args.z_range, "model": args.model,
+                 "block_size": args.block_size, "one_way": args.one_way}
+    path = plan_path(os.path.join(root, "tables"), source_digest, args.rig, arguments)
+    if path is None:
+        return None
+    reading = args.images_read_ahead
+    return MatchAhead(path, (reading[args.left], reading[args.right]))
+
+
+def _cache_root() -> str | None:
+    """The disk caches' folder: $JAXSTEREO_CACHE_DIR, or jaxstereo under $XDG_CACHE_HOME (~/.cache); None when
+    JAXSTEREO_CACHE_DIR is "off"."""
+    root = os.environ.get("JAXSTEREO_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxstereo")
+    return None if root.lower() == "off" else root
+
+
 def _use_disk_caches(jax) -> None:
     """Keep compiled functions (JAX's persistent cache, in jax/) and the tables computed from the rig alone
     (`table_cache.py`, in tables/) on disk between commands, so that a second command on this machine with
     the same rig compiles and tabulates nothing. The folder is $JAXSTEREO_CACHE_DIR, or jaxstereo under
     $XDG_CACHE_HOME (~/.cache); JAXSTEREO_CACHE_DIR=off disables both. Set by the command line only: the
     library never changes JAX's configuration and keeps no table on disk unless asked."""
-    import os
-
     from .._stereo.table_cache import use_table_cache
 
-    root = os.environ.get("JAXSTEREO_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "jaxstereo")
-    if root.lower() == "off":
+    root = _cache_root()
+    if root is None:
         return
     folder = os.path.join(root, "jax")
     try:

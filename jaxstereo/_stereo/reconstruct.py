@@ -19,7 +19,6 @@ import threading
 import time
 from collections.abc import Callable
 
-import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -34,11 +33,12 @@ from .._geometry.refraction import intersect_plane
 from .._geometry.triangulate import triangulate_rays
 from .._geometry.vectors import norm3
 from .epipolar import disparity_bounds, exact_row_offset, triangulate_exact
-from .matching import MatchOptions, Subpixel, disparity_search_range, refine_disparity, sgbm_disparity
+from .match_ahead import MatchAhead, Matched, MatchPlan, match_rectifying
+from .matching import MatchOptions, Subpixel, disparity_search_range, refine_disparity
 from .photometric import MAX_RESIDUAL_RATIO, photometric_outliers
-from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, remap, waterline_disparity
+from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, waterline_disparity
 from .survey import Survey
-from .table_cache import cached_tables
+from .table_cache import cached_tables, table_key
 from .uncertainty import SharedErrors, load_point_covariances, point_covariances, shared_covariance_table, shared_errors
 
 log = logging.getLogger("jaxstereo")
@@ -117,10 +117,6 @@ def _check_inputs(left_image, right_image, rig: Rig, interface: Interface | None
             )
 
 
-def _grey(image):
-    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-
-
 def _interface_for(rig: Rig, water_level: float | None) -> Interface | None:
     if water_level is None:
         return rig.interface
@@ -132,19 +128,28 @@ def _interface_for(rig: Rig, water_level: float | None) -> Interface | None:
     return Interface(float(water_level), base.normal, float(base.n_air), float(base.n_water))
 
 
-def _match(rect, rig, interface, left_image, right_image, z_range, options):
-    """Rectify the pair and run SGBM over the disparities the height range can produce (exactly)."""
-    maps = [rectification_maps(rect, cam, side) for side, cam in enumerate((rig.left, rig.right))]
-    rect_l = remap(left_image, maps[0])
-    rect_r = remap(right_image, maps[1])
+def _search_range(rect, rig: Rig, interface, z_range, options) -> tuple[int, int]:
+    """SGBM's (first disparity, count) pixels: the disparities the height range can produce (exactly), and a
+    margin."""
     bounds = disparity_bounds(rect, rig.left, rig.right, interface, *z_range)
     if bounds is None:
         raise JaxStereoError("no part of the scene's height range lies in front of the cameras")
-    lo, num = disparity_search_range(*bounds, options.match.margin_px)
-    colour = options.colour and rect_l.ndim == 3
-    prepare = (lambda image: image) if colour else _grey
-    disparity = sgbm_disparity(prepare(rect_l), prepare(rect_r), lo, num, options.match)
-    return rect_l, rect_r, disparity, (lo, num), maps[0]
+    return disparity_search_range(*bounds, options.match.margin_px)
+
+
+def _match(rect, rig: Rig, left_image, right_image, search, options,
+           ahead: MatchAhead | None) -> tuple[Matched, bool]:
+    """Rectify the pair and run SGBM over `search`; or take the match `ahead` made from an equal plan (see
+    `match_ahead.py`), and otherwise tell it this one's plan. Returns the match and whether it was made ahead."""
+    key = table_key("match plan", (rect, rig.left, rig.right, search, repr(options.match), options.colour))
+    matched = ahead.take(key, rig.image_size) if ahead is not None else None
+    if matched is not None:
+        return matched, True
+    maps = tuple(rectification_maps(rect, cam, side) for side, cam in enumerate((rig.left, rig.right)))
+    matched = match_rectifying(left_image, right_image, maps, search, options.match, options.colour)
+    if ahead is not None:
+        ahead.keep(MatchPlan(key, maps, search, options.match, options.colour))
+    return matched, False
 
 
 def _pairs_from_disparity(disparity):
@@ -220,9 +225,9 @@ _triangulate_chunk_jit = jax.jit(_triangulate_chunk, static_argnums=4)
 def _load_in_background(rect, rig: Rig, interface, model: str, with_covariances: bool, search) -> threading.Thread:
     """Trace the chunked triangulation and, `with_covariances`, the covariance table's interpolation (for the
     `search` range), and load them (JAX's persistent cache) or compile them, on dummy values in a thread of its
-    own, while the main thread refines the matches (numpy and OpenCV): in a fresh process that is some tenths of a
-    second of tracing and loading taken off the command's time. Join it before triangulating; whatever fails here
-    (nothing should) fails again, with its message, in the real call."""
+    own, while the main thread matches and refines the pair (numpy and OpenCV, mostly free of the GIL): in a fresh
+    process that is some tenths of a second of tracing and loading taken off the command's time. Join it before
+    triangulating; whatever fails here (nothing should) fails again, with its message, in the real call."""
 
     @float64
     def load():
@@ -243,14 +248,11 @@ OFFSET_GRID_PX = 32  # spacing of the exact row-offset table in u and v (pixels)
 OFFSET_GRID_DISPARITY_PX = 4  # and in disparity
 
 
-def _row_offsets(rect, rig, interface, disparity, search):
-    """Row offset (h, w) of each match's exact epipolar curve in the right rectified image (NaN: no match).
-
-    The offset is a smooth function of (u, v, disparity): computed exactly on a table every
-    `OFFSET_GRID_PX` pixels and `OFFSET_GRID_DISPARITY_PX` of disparity over the search range, and
-    interpolated (trilinearly) for every match.
-    """
-    h, w = disparity.shape
+def _row_offset_table(rect, rig, interface, size: tuple[int, int], search) -> np.ndarray:
+    """The exact epipolar curves' row offset in the right rectified image (pixels) on a table every
+    `OFFSET_GRID_PX` pixels (rows, columns of the left rectified image, `size` (w, h)) and `OFFSET_GRID_DISPARITY_PX`
+    of disparity over the `search` range (first, count): (nv, nu, nd) float64, 0 where no curve."""
+    w, h = size
     us = np.arange(0, w - 1 + OFFSET_GRID_PX, OFFSET_GRID_PX, dtype=np.float64)
     vs = np.arange(0, h - 1 + OFFSET_GRID_PX, OFFSET_GRID_PX, dtype=np.float64)
     ds = np.arange(search[0], search[0] + search[1] + OFFSET_GRID_DISPARITY_PX, OFFSET_GRID_DISPARITY_PX,
@@ -264,7 +266,16 @@ def _row_offsets(rect, rig, interface, disparity, search):
         return {"offset": np.nan_to_num(table.reshape(V.shape), nan=0.0)}
 
     inputs = (rect, rig.left, rig.right, interface, (h, w), tuple(int(k) for k in search))
-    table = cached_tables("exact row offsets", inputs, exact)["offset"]
+    return cached_tables("exact row offsets", inputs, exact)["offset"]
+
+
+def _row_offsets(table: np.ndarray, disparity, search):
+    """Row offset (h, w) of each match's exact epipolar curve in the right rectified image (NaN: no match).
+
+    The offset is a smooth function of (u, v, disparity): computed exactly on a table (`_row_offset_table`) and
+    interpolated (trilinearly) for every match.
+    """
+    h, w = disparity.shape
     valid = np.isfinite(disparity)
     rows = (np.arange(h, dtype=np.float32) / np.float32(OFFSET_GRID_PX))[:, None]
     columns = (np.arange(w, dtype=np.float32) / np.float32(OFFSET_GRID_PX))[None, :]
@@ -304,6 +315,7 @@ def _trilinear(table: np.ndarray, coords) -> np.ndarray:
 def reconstruct(
     left_image: np.ndarray, right_image: np.ndarray, rig: Rig, water_level: float | None = None,
     options: ReconstructOptions = ReconstructOptions(), on_points: Callable[[Survey], None] | None = None,
+    match_ahead: MatchAhead | None = None,
 ) -> tuple[Survey, dict]:
     """Reconstruct a survey from one stereo pair: at most one point per left pixel, from one match.
 
@@ -327,9 +339,12 @@ def reconstruct(
     - `on_points`: called with the survey as soon as its points are known, before their errors are propagated
       (a `Survey` without `cov` and the other error fields): the command line starts drawing its preview on
       another thread there.
+    - `match_ahead`: the command line's head start on the matching (see `match_ahead.py`): its match is taken when
+      it came from this reconstruction's own plan, and it is given the plan otherwise.
 
     **Returns:** `(survey, summary)`; the summary holds point counts (and how many were dropped and why,
     those above the height range apart), the submerged fraction, the height range used (`height_range_m`),
+    whether the match came from `match_ahead` (`matched_ahead`),
     the exact curves' row offsets from the rectified rows, seconds per stage, and `warnings` (sentences; a
     scene that rises past the height range's top).
     """
@@ -342,13 +357,15 @@ def reconstruct(
     model = options.model if interface is not None else "none"
     mode = "water" if model != "none" else "air"
     rect = rectify_checked(rig.left, rig.right, interface, mode)
-    rect_l, rect_r, disparity, search, left_map = _match(rect, rig, interface, left_image, right_image, z_range,
-                                                         options)
-    timings["rectify+match (s)"] = time.perf_counter() - t0
+    search = _search_range(rect, rig, interface, z_range, options)
     loading = _load_in_background(rect, rig, interface, model, options.uncertainty, search)
+    offsets = _row_offset_table(rect, rig, interface, rig.image_size, search) if model == "exact" else None
+    (rect_l, rect_r, disparity, left_map), ahead = _match(rect, rig, left_image, right_image, search, options,
+                                                          match_ahead)
+    timings["rectify+match (s)"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    offset = _row_offsets(rect, rig, interface, disparity, search) if model == "exact" else None
+    offset = _row_offsets(offsets, disparity, search) if offsets is not None else None
     subpixel = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
                                 options.subpixel_small_window, sigma_window=options.match.block_size,
                                 subpixel=options.subpixel, with_sigma=options.uncertainty,
@@ -386,6 +403,7 @@ def reconstruct(
         "water_level_m": survey.water_level,
         "rectification": mode,
         "disparity_search_px": [search[0], search[0] + search[1]],
+        "matched_ahead": ahead,
         "height_range_m": [float(z_range[0]), float(z_range[1])],
         **kept.counts,
         "dropped_undetermined": undetermined,

@@ -24,7 +24,6 @@ import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
-import jax
 import numpy as np
 
 log = logging.getLogger("jaxstereo")
@@ -77,8 +76,10 @@ def cached_tables(name: str, inputs, compute: Callable[[], dict[str, np.ndarray]
 def table_key(name: str, inputs) -> str:
     """The hex SHA-256 of `name`, jaxstereo's source and the values, dtypes and shapes of `inputs`' leaves
     with the PyTree's structure (static fields such as a rectification's mode and size included)."""
+    import jax  # here: the module is imported before JAX by the command line (`match_ahead.py`)
+
     leaves, structure = jax.tree_util.tree_flatten(inputs)
-    h = hashlib.sha256(_source())
+    h = hashlib.sha256(source_digest())
     h.update(name.encode())
     h.update(str(structure).encode())
     for leaf in leaves:
@@ -91,7 +92,7 @@ def table_key(name: str, inputs) -> str:
     return h.hexdigest()
 
 
-def _source() -> bytes:
+def source_digest() -> bytes:
     """The SHA-256 of every Python file of the jaxstereo package (read once per process)."""
     global _source_digest
     if _source_digest is None:

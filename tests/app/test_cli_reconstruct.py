@@ -126,11 +126,15 @@ def test_the_rig_tables_kept_between_commands_give_the_same_survey(pair, tmp_pat
     tables = tmp_path / "cache" / "tables"
     assert _run(root, tmp_path / "first", "--water-level", "0.18") == 0
     kept = sorted(p.name.split("-")[0] for p in tables.glob("*.npz"))
-    # the rectification, its two map grids, the search range, the exact row offsets, the shared covariance
-    assert kept == ["disparity", "exact", "rectification", "rectification", "rectification", "shared"]
+    # the rectification, its two map grids, the search range, the exact row offsets, the shared covariance, and
+    # the match plan (the remap tables and the search range, for the next command's head start: match_ahead.py)
+    assert kept == ["disparity", "exact", "match", "rectification", "rectification", "rectification", "shared"]
     written = {p: p.stat().st_mtime_ns for p in tables.glob("*.npz")}
     assert _run(root, tmp_path / "second", "--water-level", "0.18") == 0
     assert {p: p.stat().st_mtime_ns for p in tables.glob("*.npz")}.keys() == written.keys()  # read, none added
+    ahead = [json.loads((tmp_path / name / "out" / "survey_summary.json").read_text())["matched_ahead"]
+             for name in ("off", "first", "second")]
+    assert ahead == [False, False, True]
     surveys = [load_survey(tmp_path / name / "out" / "survey.npz") for name in ("off", "first", "second")]
     for other in surveys[1:]:
         for field in ("points", "cov", "pixels", "submerged"):
