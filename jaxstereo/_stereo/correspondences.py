@@ -68,13 +68,16 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
 
     **Returns:** `(left_pixels, right_pixels)`, each (n, 2) float64 pixels, measured in both directions.
     """
-    from .reconstruct import ReconstructOptions, _chunked, _interface_for, _match, _pairs_from_disparity, _row_offsets
+    from .reconstruct import (ReconstructOptions, _chunked, _interface_for, _match, _pairs_from_disparity,
+                              _row_offset_table, _row_offsets, _search_range)
 
     interface: Interface = _interface_for(rig, level_guess)
     z_range = (-0.03, float(interface.level) + 0.4)
     rect = rectify(rig.left, rig.right, interface, "water")
-    _, _, disparity, search, _ = _match(rect, rig, interface, left_image, right_image, z_range, ReconstructOptions())
-    offset = _row_offsets(rect, rig, interface, disparity, search)
+    options = ReconstructOptions()
+    search = _search_range(rect, rig, interface, z_range, options)
+    (_, _, disparity, _), _ = _match(rect, rig, left_image, right_image, search, options, None)
+    offset = _row_offsets(_row_offset_table(rect, rig, interface, rig.image_size, search), disparity, search)
     rl, rr, v, u = _pairs_from_disparity(disparity)
     if rl.shape[0] == 0:
         return np.zeros((0, 2)), np.zeros((0, 2))

@@ -18,7 +18,7 @@ from scipy import ndimage
 
 from jaxstereo import Camera, Pose, Rig, rectify
 from jaxstereo._stereo.matching import refine_disparity
-from jaxstereo._stereo.reconstruct import ReconstructOptions, _match
+from jaxstereo._stereo.reconstruct import ReconstructOptions, _match, _search_range
 from jaxstereo._stereo.rectify import rectified_rays
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "povray-flume-dev"
@@ -80,7 +80,9 @@ def test_refinement_sharpens_correct_matches_and_leaves_none(x64):
     rig = _true_rig(truth)
     rect = rectify(rig.left, rig.right, None, "air")
     left, right = (cv2.cvtColor(cv2.imread(str(DATA / f"bw_I_dry_{s}.jpg")), cv2.COLOR_BGR2RGB) for s in "LR")
-    rect_l, rect_r, sgbm, _, _ = _match(rect, rig, None, left, right, (-0.03, 0.4), ReconstructOptions())
+    options = ReconstructOptions()
+    search = _search_range(rect, rig, None, (-0.03, 0.4), options)
+    (rect_l, rect_r, sgbm, _), _ = _match(rect, rig, left, right, search, options, None)
     refined = refine_disparity(rect_l, rect_r, sgbm, None, sigma_window=5).disparity
     true = _true_disparity(rect, rig, np.load(DATA / "breakwater_gt.npz"), "I", sgbm.shape)
     assert np.isfinite(true).mean() > 0.5  # the scene is there: 67 % of the pixels seen by both cameras
