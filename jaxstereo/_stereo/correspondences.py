@@ -68,8 +68,16 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
 
     **Returns:** `(left_pixels, right_pixels)`, each (n, 2) float64 pixels, measured in both directions.
     """
-    from .reconstruct import (ReconstructOptions, _chunked, _interface_for, _match, _pairs_from_disparity,
-                              _row_offset_table, _row_offsets, _search_range)
+    from .reconstruct import (
+        ReconstructOptions,
+        _chunked,
+        _interface_for,
+        _match,
+        _pairs_from_disparity,
+        _row_offset_table,
+        _row_offsets,
+        _search_range,
+    )
 
     interface: Interface = _interface_for(rig, level_guess)
     z_range = (-0.03, float(interface.level) + 0.4)
