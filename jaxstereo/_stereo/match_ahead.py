@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from .matching import MatchOptions, sgbm_disparity
+from .table_cache import trim_folder
 
 log = logging.getLogger("jaxstereo")
 
@@ -121,7 +122,7 @@ class MatchAhead:
 
     def keep(self, plan: MatchPlan) -> None:
         """Write `plan` for the next command with these arguments (a temporary name, then renamed; nothing on a
-        read-only or full disk)."""
+        read-only or full disk), and keep the folder within the table cache's size (`trim_folder`)."""
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             handle, temporary = tempfile.mkstemp(dir=self.path.parent, suffix=".partial")
@@ -131,6 +132,7 @@ class MatchAhead:
                          left_x=plan.maps[0][0], left_y=plan.maps[0][1], right_x=plan.maps[1][0],
                          right_y=plan.maps[1][1])
             os.replace(temporary, self.path)
+            trim_folder(self.path.parent)
         except OSError as err:
             log.debug("match plan not kept: %s", err)
 

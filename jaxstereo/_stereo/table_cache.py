@@ -10,7 +10,8 @@ table is kept there under the SHA-256 of its inputs' values and of jaxstereo's o
 change to either computes it again.
 
 A file is written to a temporary name and renamed; one that cannot be read is computed again. The folder
-is kept under `MAX_FOLDER_BYTES`, the least recently used files removed first.
+is kept under `MAX_FOLDER_BYTES`, the least recently used files removed first. The command line keeps its match
+plans there too (`match_ahead.py`: the remap tables, 32 MB for a 1728x1152 rig).
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ def cached_tables(name: str, inputs, compute: Callable[[], dict[str, np.ndarray]
         with os.fdopen(handle, "wb") as out:
             np.savez(out, **tables)
         os.replace(temporary, path)
-        _trim(_folder)
+        trim_folder(_folder)
     except OSError:
         pass  # a read-only or full disk: the tables were computed, the command goes on without keeping them
     return tables
@@ -105,7 +106,7 @@ def source_digest() -> bytes:
     return _source_digest
 
 
-def _trim(folder: Path) -> None:
+def trim_folder(folder: Path) -> None:
     """Remove what a killed command left half-written (over an hour old), then the least recently used
     files until the folder holds at most `MAX_FOLDER_BYTES`."""
     files = []
