@@ -104,21 +104,22 @@ class MatchAhead:
     def _run(self, plan: MatchPlan, images: tuple[Future, Future]) -> None:
         try:
             left, right = (image.result() for image in images)
-            self._match.set_result(match_rectifying(left, right, plan.maps, plan.search, plan.options, plan.colour))
+            matched = match_rectifying(left, right, plan.maps, plan.search, plan.options, plan.colour)
+            self._match.set_result((matched, {left.shape[:2], right.shape[:2]}))
         except BaseException as err:  # noqa: BLE001 - a bad image is reported by the command's own reading
             self._match.set_exception(err)
 
     def take(self, key: str, size: tuple[int, int]) -> Matched | None:
-        """The match made ahead (waiting for it), when it came from the plan with this `key` and its images are
-        `size` (w, h) pixels; None otherwise (no plan, another plan, or a failure the caller meets itself)."""
+        """The match made ahead (waiting for it), when it came from the plan with this `key` and both real images
+        are `size` (w, h) pixels; None otherwise (no plan, another plan, or a failure the caller meets itself)."""
         if self._match is None or self._key != key:
             return None
         try:
-            matched = self._match.result()
+            matched, shapes = self._match.result()
         except Exception as err:  # noqa: BLE001 - the caller matches again and reports what is wrong
             log.debug("matching ahead failed: %s", err)
             return None
-        return matched if matched.disparity.shape == (size[1], size[0]) else None
+        return matched if shapes == {(size[1], size[0])} else None
 
     def keep(self, plan: MatchPlan) -> None:
         """Write `plan` for the next command with these arguments (a temporary name, then renamed; nothing on a

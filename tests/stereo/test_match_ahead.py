@@ -58,6 +58,8 @@ def test_a_kept_plan_is_matched_ahead_and_equals_the_match_made_after_rectifying
     # Another plan's key, or images of another size, take nothing.
     assert MatchAhead(path, images).take("k2", SIZE) is None
     assert MatchAhead(path, images).take("k1", (SIZE[0] + 1, SIZE[1])) is None
+    cropped = (_done(left), _done(np.ascontiguousarray(right[:, 1:])))  # a right image not the rig's size
+    assert MatchAhead(path, cropped).take("k1", SIZE) is None
 
 
 def test_grey_images_or_colour_off_match_on_grey(pair, tmp_path):
