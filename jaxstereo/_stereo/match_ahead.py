@@ -7,10 +7,11 @@ range and the matching settings alone, so `reconstruct` keeps them (a match plan
 tables) and the next command on this machine with the same rig file and settings reads them back at once,
 rectifies and matches its pair on a thread of its own from its first half second, while the main thread
 imports JAX (the images decode and SGBM release the GIL). On the POV-Ray flume's 1728x1152 pair, 2 cores, that
-took a fresh command from 7.8 to 6.8 s (means of 6 runs each, alternated).
+took a fresh command from 7.8 to 6.8 s on average, faster in each of 11 pairs of runs alternated with the code
+before it.
 
 The plan file is found by the command's own arguments (the rig file's bytes, the level, the range, the settings)
-and holds the key of the computation it came from (`plan_key`: the rectification, the cameras, the search range
+and holds the key of the computation it came from (`MatchPlan.key`: the rectification, the cameras, the search range
 and the settings, with jaxstereo's source). `reconstruct` computes that key again and takes the match only when
 the two are equal (`MatchAhead.take`): a stale or foreign file costs time, never a wrong survey.
 
