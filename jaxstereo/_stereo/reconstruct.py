@@ -141,10 +141,11 @@ def _match(rect, rig: Rig, left_image, right_image, search, options,
            ahead: MatchAhead | None) -> tuple[Matched, bool]:
     """Rectify the pair and run SGBM over `search`; or take the match `ahead` made from an equal plan (see
     `match_ahead.py`), and otherwise tell it this one's plan. Returns the match and whether it was made ahead."""
-    key = table_key("match plan", (rect, rig.left, rig.right, search, repr(options.match), options.colour))
-    matched = ahead.take(key, rig.image_size) if ahead is not None else None
-    if matched is not None:
-        return matched, True
+    if ahead is not None:  # the key hashes jaxstereo's source: only for a head start
+        key = table_key("match plan", (rect, rig.left, rig.right, search, repr(options.match), options.colour))
+        matched = ahead.take(key, rig.image_size)
+        if matched is not None:
+            return matched, True
     maps = tuple(rectification_maps(rect, cam, side) for side, cam in enumerate((rig.left, rig.right)))
     matched = match_rectifying(left_image, right_image, maps, search, options.match, options.colour)
     if ahead is not None:
