@@ -20,6 +20,16 @@ with install_import_hook("jaxstereo", "typecheck.checker"):
 # exercises what a user gets with JAX's default settings (`tests/geometry/test_precision.py` checks it).
 
 
+@pytest.fixture(scope="session", autouse=True)
+def command_caches(tmp_path_factory):
+    """The command line's disk caches (compiled programs, rig tables, match plans) in a folder of this run's, not
+    the user's ~/.cache: the suite starts cold, as on a fresh machine, and leaves nothing behind. The commands the
+    tests run, in this process or in a child, share it (a test may set its own)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("JAXSTEREO_CACHE_DIR", str(tmp_path_factory.mktemp("command-caches")))
+        yield
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261121)
