@@ -25,6 +25,10 @@ class Heightfield(eqx.Module):
     - `block`: side of the coarse blocks (in nodes) of the max map used to skip empty space.
     - `z_min`, `z_max`: the height range, metres (static).
     - `block_max`: max height over each coarse block and its 8 neighbours (nby, nbx), metres.
+    - `fine_block`: side of the fine blocks (in nodes), `FINE_BLOCK`.
+    - `fine_max`: the same bound over fine blocks (nfy, nfx), metres: it lets a ray that has come below a coarse
+      block's bound (beside a rock) still skip, where the rock is no nearer than a fine block.
+    - `cell_max`: the same bound over single grid cells (ny - 1, nx - 1), metres.
     """
 
     z: Float[Array, "ny nx"]
@@ -36,6 +40,9 @@ class Heightfield(eqx.Module):
     z_min: float = eqx.field(static=True)
     z_max: float = eqx.field(static=True)
     block_max: Float[Array, "nby nbx"]
+    fine_block: int = eqx.field(static=True)
+    fine_max: Float[Array, "nfy nfx"]
+    cell_max: Float[Array, "ncy ncx"]
 
     def __init__(self, z: Float[ArrayLike, "ny nx"], albedo: Float[ArrayLike, "ny nx 3"], x0: float, y0: float,
                  spacing: float, block: int = 16):
@@ -54,6 +61,9 @@ class Heightfield(eqx.Module):
         self.x0, self.y0, self.spacing, self.block = float(x0), float(y0), float(spacing), int(block)
         self.z_min, self.z_max = float(z.min()), float(z.max())
         self.block_max = jnp.asarray(_dilated_block_max(z, self.block))
+        self.fine_block = min(FINE_BLOCK, self.block)
+        self.fine_max = jnp.asarray(_dilated_block_max(z, self.fine_block))
+        self.cell_max = jnp.asarray(_dilated_block_max(z, 1))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -112,11 +122,26 @@ class Heightfield(eqx.Module):
 
     def block_max_at(self, xy: Float[ArrayLike, "*#batch 2"]) -> Float[Array, "*#batch"]:
         """Upper bound on the height within one block side (`block * spacing` m) of each point (..., 2)."""
-        nby, nbx = self.block_max.shape
-        size = self.block * self.spacing
-        bj = jnp.clip(jnp.floor((xy[..., 0] - self.x0) / size), 0, nbx - 1).astype(jnp.int32)
-        bi = jnp.clip(jnp.floor((xy[..., 1] - self.y0) / size), 0, nby - 1).astype(jnp.int32)
-        return self.block_max[bi, bj]
+        return _bound_at(self.block_max, self.block * self.spacing, self.x0, self.y0, xy)
+
+    def fine_max_at(self, xy: Float[ArrayLike, "*#batch 2"]) -> Float[Array, "*#batch"]:
+        """Upper bound on the height within one fine block side (`fine_block * spacing` m) of each point (..., 2)."""
+        return _bound_at(self.fine_max, self.fine_block * self.spacing, self.x0, self.y0, xy)
+
+    def cell_max_at(self, xy: Float[ArrayLike, "*#batch 2"]) -> Float[Array, "*#batch"]:
+        """Upper bound on the height within one grid spacing of each point (..., 2)."""
+        return _bound_at(self.cell_max, self.spacing, self.x0, self.y0, xy)
+
+
+FINE_BLOCK = 4  # nodes: the middle level of the bounds that let a ray skip empty space
+
+
+def _bound_at(bound, size, x0, y0, xy):
+    """`bound` (nby, nbx) of blocks `size` metres wide from (x0, y0), looked up at points (..., 2)."""
+    nby, nbx = bound.shape
+    bj = jnp.clip(jnp.floor((xy[..., 0] - x0) / size), 0, nbx - 1).astype(jnp.int32)
+    bi = jnp.clip(jnp.floor((xy[..., 1] - y0) / size), 0, nby - 1).astype(jnp.int32)
+    return bound[bi, bj]
 
 
 def _dilated_block_max(z: np.ndarray, block: int) -> np.ndarray:
