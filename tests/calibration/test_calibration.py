@@ -24,6 +24,23 @@ def real_calibration():
     return board, dl, dr, calibrate_stereo(dl, dr, board, size)
 
 
+def test_detection_on_threads_equals_one_image_at_a_time_in_order():
+    """`detect_all` searches on threads; its detections are the serial ones, in the images' order, with None
+    where no board is found, and `on_each` sees them in that order."""
+    board = BoardSpec.parse("chessboard:9x6:0.025")
+    images, _ = read_images_same_size(sorted(glob.glob(str(DATA / "left*.jpg")))[:5])
+    images.insert(2, np.full_like(images[0], 128))  # a blank view: no board
+    seen = []
+    threaded = detect_all(images, board, on_each=lambda k, found: seen.append((k, found)), workers=3)
+    serial = [js.detect_board(image, board) for image in images]
+    assert [k for k, _ in seen] == list(range(len(images))) and [f for _, f in seen] == threaded
+    assert threaded[2] is None and serial[2] is None
+    for a, b in zip(threaded, serial):
+        if b is not None:
+            np.testing.assert_array_equal(a.ids, b.ids)
+            np.testing.assert_array_equal(a.pixels, b.pixels)
+
+
 def test_real_photographs_stereo_rms(real_calibration):
     _, _, _, stereo = real_calibration
     assert len(stereo.pairs) >= 12
