@@ -372,7 +372,7 @@ def detect_all(images: list[np.ndarray], board: BoardSpec,
     """`detect_board` on every image (None where the board is not found), in the images' order.
 
     The images are searched on `workers` threads (default: one per core; OpenCV's detectors release the
-    interpreter: 30 of the POV-Ray flume's 1728x1152 boards in 0.75x the time on 2 cores); `on_each(index,
+    interpreter: 8 of the POV-Ray flume's 1728x1152 boards in 0.76x the time on 2 cores); `on_each(index,
     detection)` is called for each image as its turn in the order comes (a progress bar).
     """
     workers = max(1, min(len(images), workers or os.cpu_count() or 1))

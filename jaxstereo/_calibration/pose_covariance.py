@@ -62,7 +62,8 @@ def covariance_from_residuals(residuals, n_params: int) -> tuple[np.ndarray, flo
     **Returns:** `(cov, noise_px)`; `cov` is all inf when the parameters are not determined.
     """
     p0 = jnp.zeros(n_params)
-    r0 = np.asarray(jax.jit(residuals)(p0))  # compiled once: eager, each projection's ops compile per shape
+    # One compiled program each: run eagerly, every operation would compile on its own for each new shape.
+    r0 = np.asarray(jax.jit(residuals)(p0))
     J = np.asarray(jax.jit(jax.jacfwd(residuals))(p0))
     noise = float(np.sqrt(float(r0 @ r0) / max(r0.size - n_params, 1)))
     try:
