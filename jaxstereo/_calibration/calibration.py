@@ -371,11 +371,11 @@ def detect_all(images: list[np.ndarray], board: BoardSpec,
                workers: int | None = None) -> list[Detection | None]:
     """`detect_board` on every image (None where the board is not found), in the images' order.
 
-    The images are searched on `workers` threads (default: one per core; OpenCV's detectors release the
-    interpreter: 8 of the POV-Ray flume's 1728x1152 boards in 0.76x the time on 2 cores); `on_each(index,
-    detection)` is called for each image as its turn in the order comes (a progress bar).
+    The images are searched on `workers` threads (default: one per core, at most 8; OpenCV's detectors
+    release the interpreter: 8 of the POV-Ray flume's 1728x1152 boards in 0.76x the time on 2 cores);
+    `on_each(index, detection)` is called for each image as its turn in the order comes (a progress bar).
     """
-    workers = max(1, min(len(images), workers or os.cpu_count() or 1))
+    workers = max(1, min(len(images), workers or min(8, os.cpu_count() or 1)))  # 8 full images in memory at most
     with ThreadPoolExecutor(workers) as pool:
         found = []
         for k, detection in enumerate(pool.map(lambda image: detect_board(image, board), images)):
