@@ -318,20 +318,19 @@ def _frame_covariance(left: Camera, right: Camera, obj_l, px_l, obj_r, px_r) -> 
     at the origin, "frame_noise_px"}` for the rig's provenance; `refine` turns it into the floor's height
     uncertainty where its control points lie.
     """
-    obj = jnp.asarray(np.concatenate([obj_l, obj_r]))
-    seen = jnp.asarray(np.concatenate([px_l, px_r]))
-    n_left = len(obj_l)
-
-    def residuals(p):
-        moved = obj + jnp.cross(p[:3], obj) + p[3:]
-        projected = jnp.concatenate([left.project(moved[:n_left]), right.project(moved[n_left:])])
-        return (projected - seen).ravel()
-
-    cov, noise = covariance_from_residuals(residuals, 6)
+    cov, noise = covariance_from_residuals(_frame_residuals, 6, left, right, jnp.asarray(obj_l), jnp.asarray(obj_r),
+                                           jnp.asarray(np.concatenate([px_l, px_r])))
     if not np.all(np.isfinite(cov)):  # too few corners to fix the frame: no record, no frame term in refine
         return {}
     return {"frame_cov": cov.tolist(), "frame_tilt_std_mrad": [1e3 * float(np.sqrt(cov[k, k])) for k in (0, 1)],
             "frame_height_std_m": float(np.sqrt(cov[5, 5])), "frame_noise_px": noise}
+
+
+def _frame_residuals(p, left: Camera, right: Camera, obj_l, obj_r, seen):
+    """Reprojection residuals (pixels) of the origin board's corners in both images, the world frame moved by
+    `p`: `X -> X + p[:3] x X + p[3:]`."""
+    moved_l, moved_r = (obj + jnp.cross(p[:3], obj) + p[3:] for obj in (obj_l, obj_r))
+    return (jnp.concatenate([left.project(moved_l), right.project(moved_r)]) - seen).ravel()
 
 
 def _origin_rms(left, right, obj_l, px_l, obj_r, px_r) -> float:

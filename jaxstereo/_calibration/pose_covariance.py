@@ -8,6 +8,8 @@ pose to about that precision; this covariance, recorded in the rig, lets `refine
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -44,30 +46,44 @@ def right_pose_covariance(K_left, dist_left, K_right, dist_right, R, T, image_si
     t0 = jnp.asarray(np.stack([np.ravel(tv) for tv in board_tvecs]).astype(float))
     seen = jnp.asarray(np.concatenate([np.concatenate(pixels_left), np.concatenate(pixels_right)]).astype(float))
 
-    def residuals(p):
-        right = right0.with_pose(right0.pose.retract(p[:6]))
-        q = p[6:].reshape(-1, 6)
-        R = R0 @ jax.vmap(so3_exp)(q[:, :3])  # each board's pose moved in its own frame
-        points = jnp.einsum("nij,nj->ni", R[board], corners) + (t0 + q[:, 3:])[board]
-        return (jnp.concatenate([left.project(points), right.project(points)]) - seen).ravel()
-
-    cov, _ = covariance_from_residuals(residuals, 6 + 6 * len(counts))
+    cov, _ = covariance_from_residuals(_pose_residuals, 6 + 6 * len(counts), left, right0, R0, t0, board, corners,
+                                       seen)
     return cov[:6, :6]
 
 
-def covariance_from_residuals(residuals, n_params: int) -> tuple[np.ndarray, float]:
-    """Gauss-Newton covariance (n_params, n_params) of small parameters about zero, `residuals(p)` in pixels,
-    with the pixel noise estimated from the residuals at zero (n - n_params degrees of freedom).
+def _pose_residuals(p, left, right0, R0, t0, board, corners, seen):
+    """Reprojection residuals (pixels) of every board corner in both images, the right pose moved by `p[:6]` and
+    board k's by `p[6 + 6k : 12 + 6k]` (rotation in its own frame, shift)."""
+    right = right0.with_pose(right0.pose.retract(p[:6]))
+    q = p[6:].reshape(-1, 6)
+    R = R0 @ jax.vmap(so3_exp)(q[:, :3])
+    points = jnp.einsum("nij,nj->ni", R[board], corners) + (t0 + q[:, 3:])[board]
+    return (jnp.concatenate([left.project(points), right.project(points)]) - seen).ravel()
+
+
+def covariance_from_residuals(residuals, n_params: int, *args) -> tuple[np.ndarray, float]:
+    """Gauss-Newton covariance (n_params, n_params) of small parameters about zero, `residuals(p, *args)` in
+    pixels, with the pixel noise estimated from the residuals at zero (n - n_params degrees of freedom).
+
+    `residuals` and its Jacobian are compiled once per function and shapes of `args` (pass the data as `args`
+    and keep `residuals` a module-level function: a closure would compile anew at every call; run eagerly,
+    every operation would compile on its own for each new shape).
 
     **Returns:** `(cov, noise_px)`; `cov` is all inf when the parameters are not determined.
     """
+    value, jacobian = _compiled(residuals)
     p0 = jnp.zeros(n_params)
-    # One compiled program each: run eagerly, every operation would compile on its own for each new shape.
-    r0 = np.asarray(jax.jit(residuals)(p0))
-    J = np.asarray(jax.jit(jax.jacfwd(residuals))(p0))
+    r0 = np.asarray(value(p0, *args))
+    J = np.asarray(jacobian(p0, *args))
     noise = float(np.sqrt(float(r0 @ r0) / max(r0.size - n_params, 1)))
     try:
         cov = noise**2 * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         return np.full((n_params, n_params), np.inf), noise
     return (cov if np.all(np.isfinite(cov)) else np.full((n_params, n_params), np.inf)), noise
+
+
+@functools.cache
+def _compiled(residuals):
+    """`residuals` and its Jacobian with respect to its first argument, compiled."""
+    return jax.jit(residuals), jax.jit(jax.jacfwd(residuals))
