@@ -132,8 +132,8 @@ def _print_calibration(stereo, report: dict, rig, calibration: dict) -> None:
         ("views used (left / right / pairs)", f"{len(stereo.left.views)} / {len(stereo.right.views)} / {len(stereo.pairs)}"),
         ("RMS left / right / stereo (px)", f"{stereo.left.rms_px:.3f} / {stereo.right.rms_px:.3f} / {stereo.rms_px:.3f}"),
         ("baseline (m)", f"{stereo.baseline_m:.5f}"),
-        ("focal length left / right (px)", f"{stereo.left.K[0, 0]:.2f} / {stereo.right.K[0, 0]:.2f} "
-                                           f"(+/- {100 * stereo.focal_std_rel:.3f} %)"),
+        ("focal length left / right (px)", (f"{stereo.left.K[0, 0]:.2f} / {stereo.right.K[0, 0]:.2f} "
+                                            f"(+/- {100 * stereo.focal_std_rel:.3f} %)")),
         ("distortion model", stereo.distortion_model),
         ("world frame from", report["pose_from"]),
         ("camera heights above z = 0 (m)", f"{heights[0]:.4f} / {heights[1]:.4f}"),
@@ -550,9 +550,13 @@ def _cmd_demo(args) -> int:
 def run() -> None:
     """The `jaxstereo` console command (and `python -m jaxstereo`): `main`, then the process ends at once with
     its status. The interpreter's own teardown (JAX's runtime, every module, the survey's arrays) would take
-    another half second after a survey; every file the command writes is closed and renamed by then."""
+    another half second after a survey; every file the command writes is closed and renamed by then. The process
+    takes one malloc arena (`allocator.py`)."""
     import logging
 
+    from .allocator import use_one_malloc_arena
+
+    use_one_malloc_arena()  # before any thread allocates: see allocator.py
     sys.stdout, sys.stderr = _OutlivesItsReader(sys.stdout), _OutlivesItsReader(sys.stderr)
     status = main()
     logging.shutdown()
