@@ -117,17 +117,15 @@ def _one_way(left, right, min_disparity, num_disparities, options):
 def _cross_check(disparity, right_disparity, tolerance_px):
     """Drop (in place) the matches of `disparity` (h, w) whose right pixel (column rounded) has no match of its
     own in `right_disparity` (h, w, indexed by right pixel, same sign convention) or one that disagrees by
-    more than `tolerance_px`."""
+    more than `tolerance_px`. Whole rows at a time, no index lists (u - d is exact in float32: whole columns
+    less sixteenths)."""
     w = disparity.shape[1]
-    v, u = np.nonzero(np.isfinite(disparity))
-    d = disparity[v, u]
-    ur = np.rint(u - d).astype(np.int64)
-    inside = (ur >= 0) & (ur < w)
-    back = np.full(d.shape, np.nan, np.float32)
-    back[inside] = right_disparity[v[inside], ur[inside]]
+    with np.errstate(invalid="ignore"):  # NaN: no match, and outside
+        right_column = np.rint(np.arange(w, dtype=np.float32) - disparity)
+        inside = (right_column >= 0) & (right_column < w)
+    back = np.take_along_axis(right_disparity, np.where(inside, right_column, 0).astype(np.intp), axis=1)
     with np.errstate(invalid="ignore"):
-        bad = ~(np.abs(back - d) <= tolerance_px)
-    disparity[v[bad], u[bad]] = np.nan
+        disparity[~(inside & (np.abs(back - disparity) <= tolerance_px))] = np.nan
 
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,

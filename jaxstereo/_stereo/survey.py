@@ -73,15 +73,15 @@ def save_survey(survey: Survey, path: PathLike) -> None:
     path = Path(path)
     if path.suffix != ".npz":
         raise JaxStereoError(f"survey file {str(path)!r} must end in .npz")
-    extra = {}
+    extra = {}  # np.asarray: no copy of an array already of its type (a survey holds about 100 MB)
     if survey.cov is not None:
-        extra["cov"] = survey.cov.astype(np.float32)
+        extra["cov"] = np.asarray(survey.cov, dtype=np.float32)
     for key in ("sigma_z_match", "sigma_z_level", "dz_subpixel"):
         if getattr(survey, key) is not None:
-            extra[key] = getattr(survey, key).astype(np.float32)
+            extra[key] = np.asarray(getattr(survey, key), dtype=np.float32)
     with atomic_path(path) as tmp:
-        np.savez(tmp, points=survey.points.astype(np.float64), colors=survey.colors.astype(np.uint8),
-                 pixels=survey.pixels.astype(np.float32), submerged=survey.submerged.astype(bool),
+        np.savez(tmp, points=np.asarray(survey.points, dtype=np.float64), colors=np.asarray(survey.colors, np.uint8),
+                 pixels=np.asarray(survey.pixels, np.float32), submerged=np.asarray(survey.submerged, bool),
                  rig=np.array(survey.rig_json), model=np.array(survey.model),
                  water_level=np.array(survey.water_level, dtype=np.float64), **extra)
 
