@@ -72,7 +72,7 @@ def _cmd_calibrate(args) -> int:
         "right_views_used": [right_names[i] for i in stereo.right.views],
         "dropped_left": [names[i] for i in stereo.left.dropped],
         "dropped_right": [right_names[i] for i in stereo.right.dropped],
-        "pairs_missing_board": [names[i] for i in stereo.missing],
+        "pairs_left_out": _pairs_left_out(stereo.missing, left_det, right_det, names, right_names),
         "rms_left_px": stereo.left.rms_px,
         "rms_right_px": stereo.right.rms_px,
         "rms_stereo_px": stereo.rms_px,
@@ -106,6 +106,19 @@ def _calibration_images(args):
     if size_r != size:
         raise JaxStereoError(f"left images are {size[0]}x{size[1]} but right images are {size_r[0]}x{size_r[1]}")
     return left_paths, right_paths, left_images, right_images, size
+
+
+def _pairs_left_out(missing: list[int], left_det, right_det, left_names, right_names) -> list[str]:
+    """The pairs (indices `missing`) the stereo calibration could not use, each named by what is wrong: the
+    image or images in which no board was found, or both names when each image showed part of the board but
+    fewer than 6 of its corners were seen in both."""
+    named = []
+    for i in missing:
+        lacking = [name for name, found in ((left_names[i], left_det[i]), (right_names[i], right_det[i]))
+                   if found is None]
+        named.append(" and ".join(lacking) + " (no board)" if lacking
+                     else f"{left_names[i]} + {right_names[i]} (fewer than 6 corners seen in both)")
+    return named
 
 
 def _origin_detections(args, board, size) -> tuple:
@@ -152,7 +165,7 @@ def _print_calibration(stereo, report: dict, rig, calibration: dict) -> None:
     for name, value in rows:
         print(f"  {name:<{width}}  {value}")
     for label, items in (("dropped (left)", calibration["dropped_left"]), ("dropped (right)", calibration["dropped_right"]),
-                         ("board missing in a pair", calibration["pairs_missing_board"])):
+                         ("pairs left out", calibration["pairs_left_out"])):
         if items:
             print(f"  {label}: {', '.join(items)}")
 

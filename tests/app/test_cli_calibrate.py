@@ -78,3 +78,16 @@ def test_calibrate_bad_input(tmp_path, capsys):
 
     code = main(_args(tmp_path, origin_left=str(blank / "left0.png")))
     _one_line_error(capsys, code, "no board chessboard:9x6:0.025 found in origin image", tmp_path)
+
+
+def test_a_pair_left_out_is_named_by_the_image_without_a_board(tmp_path, capsys):
+    import cv2
+
+    folder = tmp_path / "views"
+    folder.mkdir()
+    for p in DATA.glob("*.jpg"):
+        shutil.copy(p, folder / p.name)
+    cv2.imwrite(str(folder / "right03.jpg"), np.full((480, 640, 3), 128, np.uint8))
+    assert main(_args(tmp_path, left=str(folder / "left*.jpg"), right=str(folder / "right*.jpg"))) == 0
+    assert "pairs left out: right03.jpg (no board)" in capsys.readouterr().out
+    assert load_rig(tmp_path / "out" / "rig.json").calibration["pairs_left_out"] == ["right03.jpg (no board)"]
