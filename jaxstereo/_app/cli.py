@@ -563,15 +563,11 @@ def _cmd_demo(args) -> int:
 def run() -> None:
     """The `jaxstereo` console command (and `python -m jaxstereo`): `main`, then the process ends at once with
     its status. The interpreter's own teardown (JAX's runtime, every module, the survey's arrays) would take
-    another half second after a survey; every file the command writes is closed and renamed by then. The process
-    takes one malloc arena (`allocator.py`)."""
+    another half second after a survey; every file the command writes is closed and renamed by then."""
     import logging
 
-    from .allocator import use_one_malloc_arena
-
-    use_one_malloc_arena()  # before any thread allocates: see allocator.py
     sys.stdout, sys.stderr = _OutlivesItsReader(sys.stdout), _OutlivesItsReader(sys.stderr)
-    status = main()
+    status = main(own_process=True)
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
@@ -607,8 +603,9 @@ class _OutlivesItsReader:
         return getattr(self._stream, name)
 
 
-def main(argv=None) -> int:
-    """Run the command line; returns the exit status."""
+def main(argv=None, *, own_process: bool = False) -> int:
+    """Run the command line; returns the exit status. `own_process` (the `jaxstereo` command, `run`): the process
+    is the command's alone, and a repeated `reconstruct` takes one malloc arena (`allocator.py`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not args.command:
@@ -624,8 +621,13 @@ def main(argv=None) -> int:
         "grid": _cmd_grid,
         "damage": _cmd_damage,
     }[args.command]
+    plan = _match_plan(args)
+    if own_process and plan is not None and plan.exists():  # a repeat, which compiles nothing: see allocator.py
+        from .allocator import use_one_malloc_arena
+
+        use_one_malloc_arena()  # before the threads below allocate
     args.images_read_ahead = _read_images_ahead(args)
-    args.match_ahead = _match_ahead(args)
+    args.match_ahead = _match_ahead(plan, args.images_read_ahead, args)
     import jax
 
     from .._stereo.table_cache import use_table_cache
@@ -656,23 +658,30 @@ def _read_images_ahead(args) -> dict:
     return reading
 
 
-def _match_ahead(args):
-    """`reconstruct`'s head start (`MatchAhead`): its pair matched on a thread from the plan an earlier command
-    with the same rig file and settings kept, while JAX is imported; None for the other commands and without the
-    disk caches."""
+def _match_plan(args):
+    """`reconstruct`'s match plan file (`match_ahead.plan_path`: kept by an earlier command with the same rig file
+    and settings, and there or not); None for the other commands, without the disk caches, or when the rig file
+    cannot be read."""
     root = _cache_root()
     if args.command != "reconstruct" or root is None:
         return None
-    from .._stereo.match_ahead import MatchAhead, plan_path
+    from .._stereo.match_ahead import plan_path
     from .._stereo.table_cache import source_digest
 
     arguments = {"water_level": args.water_level, "z_range": args.z_range, "model": args.model,
                  "block_size": args.block_size, "one_way": args.one_way}
-    path = plan_path(os.path.join(root, "tables"), source_digest, args.rig, arguments)
-    if path is None:
+    return plan_path(os.path.join(root, "tables"), source_digest, args.rig, arguments)
+
+
+def _match_ahead(plan, reading: dict, args):
+    """`reconstruct`'s head start (`MatchAhead`): its pair (`reading`, from `_read_images_ahead`) matched on a
+    thread from the `plan` an earlier command with the same rig file and settings kept, while JAX is imported;
+    None without a plan path (`_match_plan`)."""
+    if plan is None:
         return None
-    reading = args.images_read_ahead
-    return MatchAhead(path, (reading[args.left], reading[args.right]))
+    from .._stereo.match_ahead import MatchAhead
+
+    return MatchAhead(plan, (reading[args.left], reading[args.right]))
 
 
 def _cache_root() -> str | None:

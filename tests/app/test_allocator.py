@@ -38,17 +38,28 @@ def test_threads_share_one_arena_once_asked():
     assert (taken, one) == ("True", 1)
 
 
-def test_the_command_line_takes_it_before_main(monkeypatch):
-    import logging
-
+def test_a_repeated_reconstruct_takes_it_before_any_thread(monkeypatch, tmp_path):
     from jaxstereo._app import allocator, cli
+    from jaxstereo._app.parser import build_parser
 
+    monkeypatch.setenv("JAXSTEREO_CACHE_DIR", str(tmp_path / "cache"))
+    rig = tmp_path / "rig.json"
+    rig.write_text("{}")
+    argv = ["reconstruct", "L.png", "R.png", "--rig", str(rig), "--water-level", "0.16", "-o", str(tmp_path / "s.npz")]
     calls = []
     monkeypatch.setattr(allocator, "use_one_malloc_arena", lambda: calls.append("arena"))
-    monkeypatch.setattr(cli, "main", lambda: calls.append("main") or 0)
-    monkeypatch.setattr(logging, "shutdown", lambda: None)  # pytest's own handlers stay open
-    monkeypatch.setattr(cli.os, "_exit", lambda status: calls.append(("exit", status)))
-    monkeypatch.setattr(sys, "stdout", sys.stdout)
-    monkeypatch.setattr(sys, "stderr", sys.stderr)
-    cli.run()
-    assert calls == ["arena", "main", ("exit", 0)]
+    monkeypatch.setattr(cli, "_read_images_ahead", lambda args: calls.append("threads") or {})
+    monkeypatch.setattr(cli, "_match_ahead", lambda plan, reading, args: None)
+    monkeypatch.setattr(cli, "_cmd_reconstruct", lambda args: 0)
+
+    def run(own_process: bool) -> list:
+        calls.clear()
+        assert cli.main(argv, own_process=own_process) == 0
+        return list(calls)
+
+    assert run(True) == ["threads"]  # the first: it compiles, and one arena would slow that down
+    plan = cli._match_plan(build_parser().parse_args(argv))
+    plan.parent.mkdir(parents=True)
+    plan.write_bytes(b"kept by an earlier command")
+    assert run(True) == ["arena", "threads"]
+    assert run(False) == ["threads"]  # a caller's own process (these tests) keeps its allocator
