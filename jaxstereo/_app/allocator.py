@@ -6,8 +6,8 @@ the sub-pixel stage, the matching ahead, OpenCV's and XLA's pools), so the same 
 in again, page by page: a fresh `jaxstereo reconstruct` of the POV-Ray flume's 1728x1152 pair spent 1.1-1.7 s of
 system time on 2 cores, most of it in page faults of numpy's and OpenCV's outputs (`perf record -e page-faults`).
 With one arena the freed blocks are reused: 0.6-0.9 s of system time, the peak memory 10-20 % lower, and the
-command 0.2-0.4 s faster (3.0-3.3 s against 3.4-4.0 s, alternated runs; later in a quieter hour 3.22 against
-3.42 s median of five).
+command 0.2-0.6 s faster (2.95-3.07 s against 3.32-3.80 s, five alternated runs each; 3.22 against 3.42 s median
+of five in another hour).
 
 Compiling is another matter: XLA's compiler threads allocate small blocks by the million, and one arena makes
 them queue for its lock. A reconstruction that compiles (the first on a machine) took 10.0 s against 8.7 s, the
@@ -36,10 +36,10 @@ def use_one_malloc_arena() -> bool:
     try:
         libc = ctypes.CDLL(None)  # the symbols already loaded, the C library among them
         mallopt = libc.mallopt
-        version = libc.gnu_get_libc_version  # glibc's own symbol: musl has a mallopt that does nothing
     except (OSError, AttributeError):
         return False
-    del version
+    if not hasattr(libc, "gnu_get_libc_version"):  # glibc's own symbol: musl has a mallopt that does nothing
+        return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
     return mallopt(M_ARENA_MAX, 1) == 1
