@@ -146,10 +146,9 @@ def save_ply(survey: Survey, path: PathLike) -> None:
     record["r"], record["g"], record["b"] = survey.colors.T
     for name, values in scalars.items():
         record[name] = values
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(header)
-            fh.write(record.tobytes())
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(header)
+        fh.write(record.tobytes())
 
 
 # (left, bottom, width, height) in figure fractions: the image panel, the top view, the colour bar
