@@ -37,6 +37,7 @@ from .match_ahead import MatchAhead, Matched, MatchPlan, match_rectifying
 from .matching import MatchOptions, Subpixel, disparity_search_range, refine_disparity
 from .photometric import MAX_RESIDUAL_RATIO, photometric_outliers
 from .rectify import Rectification, rectification_maps, rectified_rays, rectify_checked, waterline_disparity
+from .row_bands import map_row_bands
 from .survey import Survey
 from .table_cache import cached_tables, table_key
 from .uncertainty import SharedErrors, load_point_covariances, point_covariances, shared_covariance_table, shared_errors
@@ -277,14 +278,19 @@ def _row_offsets(table: np.ndarray, disparity, search):
     interpolated (trilinearly) for every match.
     """
     h, w = disparity.shape
-    valid = np.isfinite(disparity)
-    rows = (np.arange(h, dtype=np.float32) / np.float32(OFFSET_GRID_PX))[:, None]
     columns = (np.arange(w, dtype=np.float32) / np.float32(OFFSET_GRID_PX))[None, :]
-    layers = (np.where(valid, disparity, np.float32(search[0])) - np.float32(search[0])) / np.float32(
-        OFFSET_GRID_DISPARITY_PX)
-    offset = _trilinear(table, (rows, columns, layers))
-    offset[~valid] = np.nan
-    return offset
+
+    def band(start: int, stop: int) -> tuple:  # each pixel on its own: bands of rows on threads, no halo
+        d = disparity[start:stop]
+        valid = np.isfinite(d)
+        rows = (np.arange(start, stop, dtype=np.float32) / np.float32(OFFSET_GRID_PX))[:, None]
+        layers = (np.where(valid, d, np.float32(search[0])) - np.float32(search[0])) / np.float32(
+            OFFSET_GRID_DISPARITY_PX)
+        offset = _trilinear(table, (rows, columns, layers))
+        offset[~valid] = np.nan
+        return (offset,)
+
+    return map_row_bands(band, h, 0)[0]
 
 
 def _trilinear(table: np.ndarray, coords) -> np.ndarray:
@@ -429,9 +435,9 @@ def _range_warnings(summary: dict) -> list[str]:
     if above <= ABOVE_RANGE_SHARE * matches:
         return []
     top = summary["height_range_m"][1]
-    return [f"{above} matches ({100 * above / matches:.1f} %) lie above the height range's top, z = {top:.3f} m: "
-            f"the scene rises higher, and what lies above the search is missing or mismatched; widen the height "
-            f"range (--z-range ZMIN ZMAX; z_range in a batch manifest)"]
+    return [(f"{above} matches ({100 * above / matches:.1f} %) lie above the height range's top, z = {top:.3f} m: "
+             f"the scene rises higher, and what lies above the search is missing or mismatched; widen the height "
+             f"range (--z-range ZMIN ZMAX; z_range in a batch manifest)")]
 
 
 def _drop_undetermined(subpixel: Subpixel, limit_px: float) -> tuple[np.ndarray, int]:
@@ -442,7 +448,7 @@ def _drop_undetermined(subpixel: Subpixel, limit_px: float) -> tuple[np.ndarray,
     return np.where(undetermined, np.nan, subpixel.disparity), int(np.count_nonzero(undetermined))
 
 
-def _point_errors(rect, rig: Rig, interface, shared: SharedErrors, search, kept: "_Kept", subpixel: Subpixel,
+def _point_errors(rect, rig: Rig, interface, shared: SharedErrors, search, kept: _Kept, subpixel: Subpixel,
                   refracts: bool) -> dict:
     """The kept points' error fields for the `Survey` (see `point_covariances`): the submerged points' from the
     refracted sub-table when the model `refracts`, every point's from the in-air one otherwise."""
