@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -17,6 +16,7 @@ from .._geometry.camera import Camera
 from .._geometry.errors import JaxStereoError
 from .._geometry.pose import Pose
 from .._geometry.precision import float64
+from .._stereo.row_bands import available_cores
 from .boards import BoardSpec
 from .detect import Detection, detect_board
 from .pose_covariance import covariance_from_residuals, right_pose_covariance
@@ -374,7 +374,7 @@ def detect_all(images: list[np.ndarray], board: BoardSpec,
     release the interpreter: 8 of the POV-Ray flume's 1728x1152 boards in 0.76x the time on 2 cores);
     `on_each(index, detection)` is called for each image as its turn in the order comes (a progress bar).
     """
-    workers = max(1, min(len(images), workers or min(8, os.cpu_count() or 1)))  # 8 full images in memory at most
+    workers = max(1, min(len(images), workers or min(8, available_cores())))  # at most 8 images' working copies
     with ThreadPoolExecutor(workers) as pool:
         found = []
         for k, detection in enumerate(pool.map(lambda image: detect_board(image, board), images)):
