@@ -231,6 +231,7 @@ def _cmd_reconstruct(args) -> int:
     print(f"  dropped                     {summary['dropped_rays_apart']} rays apart, "
           f"{summary['dropped_outside_height_range']} outside the height range, "
           f"{summary['dropped_undetermined']} not determined (disparity std over 1 px), "
+          f"{summary['dropped_off_surface']} off the smooth surface around them, "
           f"{summary['dropped_photometric']} colours unlike their neighbours' matches")
     _print_sigma(summary)
     for warning in summary["warnings"]:

@@ -129,7 +129,7 @@ def _cross_check(disparity, right_disparity, tolerance_px):
 
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,
-                     window: int = 31, small_window: int | None = 15, sigma_window: int = 5,
+                     window: int = 63, small_window: int | None = 15, sigma_window: int = 5,
                      subpixel: bool = True, with_sigma: bool = True, waterline: np.ndarray | None = None) -> Subpixel:
     """Sub-pixel disparities by Lucas-Kanade over a `window` x `window` patch, from whole-pixel bases, and
     each disparity's standard deviation from the fit's own residuals.
@@ -253,15 +253,16 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, v, shift: float, window: in
     # difference (on the POV-Ray flume's nadir board, 0.09 px of pixel-to-pixel noise: 1.85 mm RMS
     # under water where the blend inside the sums gives 1.29 mm).
     blended = [(1 - fraction) * a + fraction * b for a, b in zip(products[0][:4], products[1][:4])]
-    refined, sigma_refined, keep, straddles = _refine_in_windows(products[0], blended, (block, block_at_sgbm[1]), d0,
-                                                                 shift, plane_terms, valid, window, channels,
-                                                                 with_sigma, v, above)
+    large = _refine_in_windows(products[0], blended, (block, block_at_sgbm[1]), d0, shift, plane_terms, valid, window,
+                               channels, with_sigma, v, above)
+    refined, sigma_refined, keep, straddles = large.refined, large.sigma, large.kept, large.straddles
+    off_plane = large.off_plane
     if small_window is not None and small_window < window:
         # Where the surface is curved within the large window (rubble), its fit averages over the relief; the
         # small window's fit is taken where the two disagree by more than their difference's noise.
-        small, sigma_small, keep_small, straddles_small = _refine_in_windows(
-            products[0], blended, (block, block_at_sgbm[1]), d0, shift, plane_terms, valid, small_window, channels, True,
-            v, above)
+        small_fit = _refine_in_windows(products[0], blended, (block, block_at_sgbm[1]), d0, shift, plane_terms, valid,
+                                       small_window, channels, True, v, above)
+        small, sigma_small, keep_small = small_fit.refined, small_fit.sigma, small_fit.kept
         large_sigma = sigma_refined if sigma_refined is not None else np.zeros_like(small)
         noise = np.sqrt(np.maximum(sigma_small**2 - large_sigma**2, 0.0))
         use_small = keep_small & (~keep | ~(np.abs(refined - small) <= WINDOW_AGREEMENT * noise))
@@ -269,8 +270,9 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, v, shift: float, window: in
         if sigma_refined is not None:
             sigma_refined = np.where(use_small, sigma_small, sigma_refined)
         if straddles is not None:
-            straddles = np.where(use_small, straddles_small, straddles)
+            straddles = np.where(use_small, small_fit.straddles, straddles)
         keep = keep | use_small
+        off_plane = small_fit.off_plane | (~small_fit.planar & off_plane)  # the most local plane judges
     sigma = disagreement = None
     if with_sigma:
         sigma = np.where(keep, sigma_refined, sigma_sgbm)
@@ -278,23 +280,40 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, v, shift: float, window: in
             bound = sigma_small if small_window is not None and small_window < window else sigma_sgbm
             sigma = np.where(keep & straddles, np.maximum(sigma, bound), sigma)
         disagreement = _disagreement(d0, refined, keep, sigma_sgbm, window, sigma_window)
-    return Subpixel(_masked(np.where(keep, refined, d0), valid), _masked(sigma, valid), _masked(disagreement, valid))
+    return Subpixel(_masked(np.where(keep, refined, d0), valid), _masked(sigma, valid), _masked(disagreement, valid),
+                    ~keep & off_plane)
 
 
 WINDOW_AGREEMENT = 3.0  # the large window's value stands where the small one's is within 3 sigma of it
 
 
+class _WindowFit(NamedTuple):
+    """`_refine_in_windows`'s result, (h, w) each: the `refined` disparities (px), their standard deviations
+    `sigma` (None without `with_sigma`), where they are `kept`, where the patch's matches lie on both sides of
+    the water (`straddles`; None without a waterline), where the patch's SGBM disparities lie on a plane
+    (`planar`) and where the pixel's own SGBM disparity lies off that plane (`off_plane`), all bool but the
+    first two."""
+
+    refined: np.ndarray
+    sigma: np.ndarray | None
+    kept: np.ndarray
+    straddles: np.ndarray | None
+    planar: np.ndarray
+    off_plane: np.ndarray
+
+
 def _refine_in_windows(lower, blended, block, d0, shift, plane_terms, valid, window: int, channels: int,
-                       with_sigma: bool, v, above=None):
-    """Lucas-Kanade over `window` x `window` patches (see `refine_disparity`): the refined disparities (h, w),
-    their standard deviations (h, w, or None without `with_sigma`), where they are kept (h, w) bool: the
-    patch's SGBM disparities lie within `MAX_SPREAD_PX` of their plane (`plane_terms`, see `_plane_terms`), it
-    is at least half matched, and the refined value stays within 1 px of SGBM's and fits SGBM's own block
-    (`block`: its window fit and its residual variance at SGBM's values; `_fits_block`), and where the patch's
-    matches lie on both sides of the water (h, w) bool (`above` (h, w) float32, 1 for a match above it; None:
-    no water, and None returned). `lower` are the fit's per-pixel terms at the lower whole-pixel bases (with the
-    residual terms, `_fit_products`) and `blended` the first four terms of both bases, blended by each pixel's
-    SGBM fraction."""
+                       with_sigma: bool, v, above=None) -> _WindowFit:
+    """Lucas-Kanade over `window` x `window` patches (see `refine_disparity`), as a `_WindowFit`. A value is
+    kept where the patch is planar: its SGBM disparities lie within `MAX_SPREAD_PX` of their plane
+    (`plane_terms`, see `_plane_terms`) and it is at least half matched; and the refined value stays within 1
+    px of SGBM's and fits SGBM's own block (`block`: its window fit and its residual variance at SGBM's values;
+    `_fits_block`). The pixel's own SGBM disparity is off the plane where it lies further from the plane's
+    value at the patch's centre than `OFF_PLANE_SPREADS` times the patch's spread, and than `MAX_SPREAD_PX`.
+    `straddles` the water where the patch has matches on both sides of it (`above` (h, w) float32, 1 for a
+    match above it; None: no water). `lower` are the fit's per-pixel terms at the lower whole-pixel bases (with
+    the residual terms, `_fit_products`) and `blended` the first four terms of both bases, blended by each
+    pixel's SGBM fraction."""
     box = (window, window)
     fit = _window_fit(blended, box, channels)
     sigma_refined = None
@@ -303,19 +322,20 @@ def _refine_in_windows(lower, blended, block, d0, shift, plane_terms, valid, win
         # the fit's noise as it is)
         gg, s2 = _evaluate(_window_fit(lower, box, channels), fit[2])
         sigma_refined = MATCH_NOISE_SCALE * np.sqrt(s2 / np.maximum(gg, 1e-12))
-    count, slope, spread = _disparity_plane(plane_terms, window)
+    count, slope, spread, centre = _disparity_plane(plane_terms, window, v)
     # The patch's one shift is its pixels' disparities averaged with their gradient energy as weights: on a
     # surface inclined to the image (disparity `slope` px per px) it is the disparity at the energy's centroid,
     # not at the patch's centre. Moved back to the centre along the plane:
     centroid = _energy_centroid(blended[0], fit[0], box, v)
     refined = fit[2] + shift - (slope[0] * centroid[0] + slope[1] * centroid[1])
-    keep = (valid & (spread <= MAX_SPREAD_PX) & (count >= 0.5 * window * window) & (np.abs(refined - d0) < 1.0)
-            & _fits_block(*block, refined - shift))
+    planar = valid & (spread <= MAX_SPREAD_PX) & (count >= 0.5 * window * window)
+    keep = planar & (np.abs(refined - d0) < 1.0) & _fits_block(*block, refined - shift)
+    off_plane = planar & (np.abs(d0 - shift - centre) > np.maximum(OFF_PLANE_SPREADS * spread, MAX_SPREAD_PX))
     straddles = None
     if above is not None:
         emerged = cv2.boxFilter(above, -1, box, normalize=False)  # whole numbers, exact in float32
         straddles = (emerged > 0.5) & (emerged < count - 0.5)
-    return refined, sigma_refined, keep, straddles
+    return _WindowFit(refined, sigma_refined, keep, straddles, planar, off_plane)
 
 
 def _plane_terms(d0, weight, shift: float, v):
@@ -330,11 +350,12 @@ def _plane_terms(d0, weight, shift: float, v):
     return (weight, wu, wv, wu * u, wv * v, wu * v, d, d * u, d * v, d * d)
 
 
-def _disparity_plane(terms, window: int):
-    """The plane fitted to the SGBM disparities of each `window` x `window` patch (`terms` from `_plane_terms`):
-    the patch's number of matched pixels (h, w), the plane's slopes `(d/du, d/dv)` (two (h, w) arrays, px per
-    px) and the disparities' standard deviation about it (h, w) px, all float32. (The central moments are
-    differences of sums up to 1e9 in float32: about 1e-3 of the coordinates' own, far below what the test
+def _disparity_plane(terms, window: int, v):
+    """The plane fitted to the SGBM disparities of each `window` x `window` patch (`terms` from `_plane_terms`,
+    `v` (h, 1) the rows from the image's centre): the patch's number of matched pixels (h, w), the plane's slopes
+    `(d/du, d/dv)` (two (h, w) arrays, px per px), the disparities' standard deviation about it (h, w) px and the
+    plane's disparity at the patch's centre (h, w) px, less the sums' shift, all float32. (The central moments
+    are differences of sums up to 1e9 in float32: about 1e-3 of the coordinates' own, far below what the test
     and the slopes need.)"""
     box = (window, window)
     n, su, sv, suu, svv, suv, sd, sdu, sdv, sdd = (cv2.boxFilter(a, -1, box, normalize=False) for a in terms)
@@ -352,7 +373,9 @@ def _disparity_plane(terms, window: int):
     b[~ok] = 0.0
     residual = cdd - a * cdu - b * cdv
     np.maximum(residual, 0.0, out=residual)
-    return n, (a, b), np.sqrt(residual / m)
+    u = np.arange(n.shape[1], dtype=np.float32)[None, :] - np.float32(n.shape[1] // 2)
+    centre = md + a * (u - mu) + b * (v - mv)
+    return n, (a, b), np.sqrt(residual / m), centre
 
 
 def _energy_centroid(gg, s_gg, box, v):
@@ -381,11 +404,13 @@ def _fits_block(block, s2_sgbm, refined):
 
 
 class Subpixel(NamedTuple):
-    """`refine_disparity`'s result: `disparity`, `sigma` and `disagreement` (h, w) pixels (see there)."""
+    """`refine_disparity`'s result: `disparity`, `sigma` and `disagreement` (h, w) pixels, and the matches `off_surface`
+    (h, w) bool (see there; None without `subpixel`)."""
 
     disparity: np.ndarray
     sigma: np.ndarray | None
     disagreement: np.ndarray | None
+    off_surface: np.ndarray | None = None
 
 
 def _disagreement(sgbm, refined, keep, sigma_sgbm, window: int, block: int):
@@ -424,6 +449,9 @@ BLOCK_FIT_SIGMAS = 3.0
 # stays. About their mean instead, the inclined nadir board's 31 px patches spread 0.5-0.6 px without an edge
 # (its disparity changes 1.35 px across one): 1 % of its pixels kept SGBM's values, 6.7 mm RMS against 1.06.
 MAX_SPREAD_PX = 0.5
+# A match whose own SGBM disparity lies off the plane of its planar patch by more than this many spreads (and more
+# than `MAX_SPREAD_PX`), and that no patch fit could refine, is off the surface: see `refine_disparity`.
+OFF_PLANE_SPREADS = 3.0
 
 
 def _fit_products(g, r, k, weight, residuals: bool):

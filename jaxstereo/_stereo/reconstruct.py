@@ -80,7 +80,7 @@ class ReconstructOptions:
     max_sigma_disparity_px: float = 1.0
     uncertainty: bool = True
     subpixel: bool = True
-    subpixel_window: int = 31
+    subpixel_window: int = 63
     subpixel_small_window: int | None = 15
     water_level_std_m: float | None = None
     max_photometric_ratio: float | None = MAX_RESIDUAL_RATIO
@@ -378,6 +378,7 @@ def reconstruct(
                                 subpixel=options.subpixel, with_sigma=options.uncertainty,
                                 waterline=waterline_disparity(rect))
     disparity, undetermined = _drop_undetermined(subpixel, options.max_sigma_disparity_px)
+    disparity, off_surface = _drop_off_surface(disparity, subpixel)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
     photometric = 0
     if options.max_photometric_ratio is not None and np.isfinite(disparity).any():  # none: refused below
@@ -414,6 +415,7 @@ def reconstruct(
         "height_range_m": [float(z_range[0]), float(z_range[1])],
         **kept.counts,
         "dropped_undetermined": undetermined,
+        "dropped_off_surface": off_surface,
         "dropped_photometric": photometric,
         "vertical_parallax_px_mean": float(np.mean(np.abs(under))) if under.size else 0.0,
         "vertical_parallax_px_max": float(np.max(np.abs(under))) if under.size else 0.0,
@@ -446,6 +448,15 @@ def _drop_undetermined(subpixel: Subpixel, limit_px: float) -> tuple[np.ndarray,
         return subpixel.disparity, 0
     undetermined = subpixel.sigma > limit_px
     return np.where(undetermined, np.nan, subpixel.disparity), int(np.count_nonzero(undetermined))
+
+
+def _drop_off_surface(disparity: np.ndarray, subpixel: Subpixel) -> tuple[np.ndarray, int]:
+    """The disparities (h, w) with NaN where the match lies off the smooth surface around it (`Subpixel.off_surface`,
+    see `refine_disparity`), and how many of those were still there."""
+    if subpixel.off_surface is None:
+        return disparity, 0
+    off = subpixel.off_surface & np.isfinite(disparity)
+    return np.where(off, np.nan, disparity), int(np.count_nonzero(off))
 
 
 def _point_errors(rect, rig: Rig, interface, shared: SharedErrors, search, kept: _Kept, subpixel: Subpixel,

@@ -155,3 +155,31 @@ def test_a_patch_across_the_waterline_keeps_its_value_and_takes_the_larger_std()
     assert refined.sum() > 0.9 * across.sum()
     np.testing.assert_allclose(split.sigma[refined], np.maximum(plain.sigma, small.sigma)[refined], rtol=1e-6)
     assert np.mean(split.sigma[refined] > plain.sigma[refined]) > 0.5  # the small patch's std is the larger
+
+
+def test_a_match_off_the_plane_of_its_patch_is_refined_or_flagged_off_the_surface():
+    """SGBM matches 1.5 to 3 px off an inclined plane, on isolated pixels: each is either refined onto the plane
+    (its patch's fit, from its correct neighbours, kept) or, where no fit could be kept, flagged `off_surface`;
+    none keeps its wrong value unflagged. Correct matches are not flagged, on the plane and on a bump (a curved
+    surface whose patches do not lie on a plane are not judged)."""
+    left, right, start, truth = _inclined_pair(seed=5)
+    rng = np.random.default_rng(6)
+    inner = (slice(40, H - 40), slice(60, W - 60))
+    rows, cols = np.mgrid[inner]
+    pick = rng.choice(rows.size, 150, replace=False)
+    v, u = rows.ravel()[pick], cols.ravel()[pick]
+    wrong = start.copy()
+    wrong[v, u] += (rng.uniform(1.5, 3.0, v.size) * rng.choice([-1, 1], v.size)).astype(np.float32)
+    result = refine_disparity(left, right, wrong, window=63, small_window=15, with_sigma=True)
+    corrected = np.abs(result.disparity[v, u] - truth[v, u]) < 0.2
+    flagged = result.off_surface[v, u]
+    assert np.all(corrected | flagged), np.count_nonzero(~(corrected | flagged))
+    assert flagged.sum() > 0  # the fits that moved more than 1 px are not kept: those are flagged
+    clean = np.ones_like(start, bool)
+    clean[v, u] = False
+    assert np.mean(result.off_surface[inner][clean[inner]]) < 1e-3
+    left, right, start, truth = _bumped_pair(seed=7)
+    bumped = refine_disparity(left, right, start, window=63, small_window=15, with_sigma=True)
+    assert np.mean(bumped.off_surface[20:-20, 40:-40]) < 1e-3
+    plain = refine_disparity(left, right, start, window=63, small_window=15, with_sigma=True, subpixel=False)
+    assert plain.off_surface is None  # SGBM's values as they are: nothing judged

@@ -133,7 +133,7 @@ def test_disparity_sigma_predicts_the_scatter_under_independent_noise(monkeypatc
         left = np.clip(left_clean + rng.normal(0, noise, left_clean.shape), 0, 255).astype(np.uint8)
         right = np.clip(right_clean + rng.normal(0, noise, right_clean.shape), 0, 255).astype(np.uint8)
         start = np.full((h, w), float(shift), np.float32)  # SGBM's whole pixel: one linearisation
-        d, sigma, _ = refine_disparity(left, right, start, window=31)
+        d, sigma, *_ = refine_disparity(left, right, start, window=31)
         inner = np.s_[40:-40, 60:-60]
         err = d[inner] - shift
         rows.append((np.std(err), np.median(sigma[inner])))
