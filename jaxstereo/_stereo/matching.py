@@ -129,7 +129,7 @@ def _cross_check(disparity, right_disparity, tolerance_px):
 
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,
-                     window: int = 63, small_window: int | None = 15, sigma_window: int = 5,
+                     window: int = 31, small_window: int | None = 15, sigma_window: int = 5,
                      subpixel: bool = True, with_sigma: bool = True, waterline: np.ndarray | None = None) -> Subpixel:
     """Sub-pixel disparities by Lucas-Kanade over a `window` x `window` patch, from whole-pixel bases, and
     each disparity's standard deviation from the fit's own residuals.
@@ -150,7 +150,20 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     more than `WINDOW_AGREEMENT` standard deviations of their difference (or only the small one is kept): a
     curved surface (rubble) whose relief the large patch averages over. On the POV-Ray flume's rubble the 31 px
     patch smooths rocks 0.6 Dn50 wide; the 15 px patch there brings the wet and dry surveys' median difference
-    from 1.65 to 1.3 mm, while the flat board keeps the large patch.
+    from 1.65 to 1.3 mm, while the flat board keeps the large patch. (A 63 px patch costs the same box sums and
+    brings the boards' submerged RMSE to 0.87 mm (nadir) and 0.44 mm (oblique), the rubble unchanged, but the
+    fit's std then no longer describes the error: per 5 cm layer the predicted RMS is 0.64-1.71 of the measured,
+    against 0.77-1.27 at 31 px. See `MATCH_NOISE_SCALE`.)
+    A match that no patch fit could refine and whose own SGBM disparity lies off the plane of its patch
+    (further from the plane's value at the centre than `OFF_PLANE_SPREADS` times the patch's spread and than
+    `MAX_SPREAD_PX`) is flagged `off_surface`: its neighbours define a smooth surface it does not lie on, and the
+    images did not let the fit move it there. It is judged by the small patch's plane where that patch is
+    planar, else by the large one's, so that a small bump on a plane, whose matches the small patch follows, is
+    not flagged (judged by the large patch first, a 63 px one flagged the top of a bump 1.2 px high and 9 px
+    wide on a plane).
+    On the POV-Ray flume's nadir board the 0.3 % of points that kept SGBM's values were 10 mm off RMS (97 % of
+    them by more than 3 mm); 0.03 % of its matches are flagged, and dropping them brings the board's submerged
+    RMSE from 1.20 to 1.15 mm (the oblique board's from 0.65 to 0.64 mm); on the rubble 0.01 % are flagged.
     With a `waterline` (the water plane's own disparity at each pixel, `rectify.waterline_disparity`), a patch
     whose matches lie on both sides of the water keeps its fitted value but not the fit's standard deviation
     alone: the disparity changes its slope where the surface leaves the water (refraction flattens what lies
@@ -164,7 +177,7 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them. The work runs on bands of
     rows, one per core (`map_row_bands`), with the whole image's values (1.2 -> 0.73 s on the development
     flume's 1728x1152 pair, 2 cores).
-    On the POV-Ray flume's nadir board the survey's error normal to the board is 1.20 mm RMS under water
+    On the POV-Ray flume's nadir board the survey's error normal to the board is 1.15 mm RMS under water
     (SGBM's own sub-pixel values: 3.09 mm; 1.33 mm when the spread was taken about the patch's mean, which on
     the inclined board left 1 % of the pixels to SGBM's values). On its dry rubble, against disparities
     ray-cast from the true surface through the true rig, 9.52 % of the pixels are off by more than 1 px
@@ -189,7 +202,8 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
 
     **Returns:** a `Subpixel`: the refined `disparity` (h, w), its standard deviation `sigma` (h, w) and the
     estimators' `disagreement` (h, w), all pixels, NaN where the input was NaN; `sigma` and `disagreement` are
-    None when `with_sigma` is False (`disagreement` is zero without `subpixel`).
+    None when `with_sigma` is False (`disagreement` is zero without `subpixel`); the matches `off_surface` (h, w)
+    bool (their `disparity` is SGBM's; None without `subpixel`).
     """
     L = _channels(left)
     Rimg = _channels(right)
@@ -432,7 +446,10 @@ def _disagreement(sgbm, refined, keep, sigma_sgbm, window: int, block: int):
 # 4.0 while the two linearisations were blended after the window sums (their noise was not in the formula);
 # with the blend inside the sums no single factor fits both rigs within 30 %: the nadir board asks for 1.9 or
 # more (its predicted RMS 0.72-0.89 of the measured at 1.9), the oblique for 1.85 or less (1.02-1.31 at 1.9).
-# 2.0 errs on the side of the larger error bars.
+# 2.0 errs on the side of the larger error bars. The factor holds for 31 px patches only: over 63 px patches the
+# nadir board's deepest layer measured 1.00 mm RMS against 0.65 predicted (its refined points alone 0.81 against
+# 0.59) while the oblique board's predicted RMS was 1.3-1.7 times its measured, most of it the estimators'
+# disagreement, which a 63 px mean no longer shrinks to zero there (median 0.26 mm; 0 at 31 px).
 MATCH_NOISE_SCALE = 2.0
 SGBM_NOISE_SCALE = 1.4
 # On the POV-Ray flume's dry breakwater (true disparities ray-cast from its 1 mm surface), where the patch fit

@@ -79,12 +79,15 @@ def test_sloping_board_one_clean_point_per_pixel(flume):
     assert np.mean(np.abs(e) > 20) <= 0.005  # gross outliers: 1.8 % before one match per pixel, 0.00 % now
     summary = json.loads((flume[0] / "board_wet_summary.json").read_text())
     assert summary["dropped_photometric"] <= 0.005 * summary["matches"]  # correct matches stay: 0.1 % dropped
+    # SGBM's values off the board's plane that no patch fit could refine: 0.03 % of the matches (513), measured
+    assert 0 < summary["dropped_off_surface"] <= 0.002 * summary["matches"]
     medians = [np.median(e[(z >= lo) & (z < lo + 0.05)]) for lo in np.arange(0.0, 0.30, 0.05)]
     assert max(abs(m) for m in medians) <= 0.5, medians  # 0.23 measured (1.02 with OpenCV's corners alone)
     sub = (z < truth["scenes"]["board_wet"]["water_level"]) & (np.abs(e) < 20)
-    # 1.20 measured (1.33 with each patch's SGBM disparities judged by their spread about their mean, not their
-    # plane; 1.29 before the refined disparities were checked against SGBM's own block; 1.85 with the sub-pixel
-    # fit's two linearisations blended after the window sums; SGBM's own sub-pixel values 3.09; plain OpenCV 3.49)
+    # 1.15 measured (1.20 with the matches off the smooth surface kept; 1.33 with each patch's SGBM disparities
+    # judged by their spread about their mean, not their plane; 1.29 before the refined disparities were checked
+    # against SGBM's own block; 1.85 with the sub-pixel fit's two linearisations blended after the window sums;
+    # SGBM's own sub-pixel values 3.09; plain OpenCV 3.49)
     assert np.sqrt(np.mean(e[sub] ** 2)) <= 1.5
 
 
@@ -176,10 +179,10 @@ def test_board_error_bars_are_honest_in_every_layer(flume, oblique_rig, scene):
     layers = uncertainty_coverage(error, sigma, z)
     assert len(layers) >= 5
     for layer in layers:
-        # measured: nadir 89.6-97.8 %, ratio 0.72-0.93; oblique 95-97 %, ratio 0.95-1.26 (its deepest layer
+        # measured: nadir 90.5-97.8 %, ratio 0.77-0.99; oblique 95.6-97.2 %, ratio 0.97-1.27 (its deepest layer
         # 1.30 with the patches judged about their mean, not their plane; 1.36 before the check against SGBM's
         # own block): with the sub-pixel fit's linearisations blended inside the window sums, one noise factor
-        # no longer fits both rigs (see `MATCH_NOISE_SCALE`)
+        # no longer fits both rigs (see `MATCH_NOISE_SCALE`; over 63 px patches the ratios were 0.64-1.71)
         assert 0.85 <= layer["within_2_sigma"] <= 0.995, layer
         assert 0.7 <= layer["ratio"] <= 1.4, layer
 
