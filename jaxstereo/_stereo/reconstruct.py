@@ -174,7 +174,7 @@ def _chunked(fn, args, *columns):
         part = [c[start:stop] for c in columns]
         if stop - start < CHUNK:
             part = [np.pad(c, ((0, CHUNK - (stop - start)), (0, 0)), constant_values=1.0) for c in part]
-        results = fn(*args, *(jnp.asarray(c) for c in part))
+        results = fn(*args, *part)  # numpy in: the compiled call transfers it (jnp.asarray dispatched a copy each)
         if outs is None:
             outs = [np.empty((n, *r.shape[1:]), r.dtype) for r in results]
         for out, r in zip(outs, results):

@@ -216,8 +216,8 @@ def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.n
         part = slice(start, start + INTERPOLATION_CHUNK)
         count = coords[:, part].shape[1]
         pad = INTERPOLATION_CHUNK - count
-        chunk = [jnp.asarray(np.pad(coords[:, part], ((0, 0), (0, pad))))]
-        chunk += [jnp.asarray(np.pad(a[part], (0, pad))) for a in per_point]
+        chunk = [np.pad(coords[:, part], ((0, 0), (0, pad)))]  # numpy in, as `reconstruct._chunked`
+        chunk += [np.pad(a[part], (0, pad)) for a in per_point]
         for name, result in zip(("cov", *_PER_POINT_ERRORS), _chunk_errors(values, *chunk)):
             out[name][part] = np.asarray(result)[:count]
     return out
