@@ -160,8 +160,8 @@ def test_a_patch_across_the_waterline_keeps_its_value_and_takes_the_larger_std()
 def test_a_match_off_the_plane_of_its_patch_is_refined_or_flagged_off_the_surface():
     """SGBM matches 1.5 to 3 px off an inclined plane, on isolated pixels: each is either refined onto the plane
     (its patch's fit, from its correct neighbours, kept) or, where no fit could be kept, flagged `off_surface`;
-    none keeps its wrong value unflagged. Correct matches are not flagged, on the plane and on a bump (a curved
-    surface whose patches do not lie on a plane are not judged)."""
+    none keeps its wrong value unflagged. Correct matches are flagged neither on the plane nor on a bump on a
+    plane (the small patch, which follows the bump, judges them)."""
     left, right, start, truth = _inclined_pair(seed=5)
     rng = np.random.default_rng(6)
     inner = (slice(40, H - 40), slice(60, W - 60))
