@@ -358,10 +358,16 @@ def _plane_terms(d0, weight, shift: float, v):
     from the image's centre (`v` (h, 1) given), `(m, m u, m v, m u u, m v v, m u v, m d, m d u, m d v, m d d)`;
     see `_disparity_plane`."""
     w = d0.shape[1]
-    u = np.arange(w, dtype=np.float32)[None, :] - np.float32(w // 2)
+    u = _centred_columns(w)
     d = np.where(weight > 0, d0 - np.float32(shift), np.float32(0.0))
     wu, wv = weight * u, weight * v
     return (weight, wu, wv, wu * u, wv * v, wu * v, d, d * u, d * v, d * d)
+
+
+def _centred_columns(width: int) -> np.ndarray:
+    """The columns (1, width) float32 counted from the image's centre column, as the plane fit and the energy
+    centroid count them (`v`, the rows, likewise)."""
+    return np.arange(width, dtype=np.float32)[None, :] - np.float32(width // 2)
 
 
 def _disparity_plane(terms, window: int, v):
@@ -387,7 +393,7 @@ def _disparity_plane(terms, window: int, v):
     b[~ok] = 0.0
     residual = cdd - a * cdu - b * cdv
     np.maximum(residual, 0.0, out=residual)
-    u = np.arange(n.shape[1], dtype=np.float32)[None, :] - np.float32(n.shape[1] // 2)
+    u = _centred_columns(n.shape[1])
     centre = md + a * (u - mu) + b * (v - mv)
     return n, (a, b), np.sqrt(residual / m), centre
 
@@ -397,7 +403,7 @@ def _energy_centroid(gg, s_gg, box, v):
     weighted by the per-pixel energy `gg` (h, w), from the patch's centre; `s_gg` (h, w) the energy's window sum;
     `v` (h, 1) the rows from the image's centre."""
     w = gg.shape[1]
-    u = np.arange(w, dtype=np.float32)[None, :] - np.float32(w // 2)
+    u = _centred_columns(w)
     total = np.maximum(s_gg, np.float32(1e-12))
     du = cv2.boxFilter(gg * u, -1, box, normalize=False) / total - u
     dv = cv2.boxFilter(gg * v, -1, box, normalize=False) / total - v
