@@ -187,8 +187,8 @@ def _add_damage(sub) -> None:
                    help="the tested stretch (characterisation width), y from Y0 to Y1, m (default: the whole "
                         "surveyed width)")
     p.add_argument("--active-zone", type=float, nargs=2, metavar=("BELOW", "ABOVE"), default=None,
-                   help="count erosion from BELOW Dn50 under the SWL to ABOVE Dn50 over it, along the slope "
-                        "(default 6 4)")
+                   help="count the erosion zones that reach into BELOW Dn50 under the SWL to ABOVE Dn50 over it, "
+                        "along the slope, each whole (default 6 4)")
     p.add_argument("--seen-tolerance", type=float, default=None, metavar="M",
                    help="a cell whose coverage std exceeds M metres in either survey (seen only in part, or filled) "
                         "takes the change of the cells around it that both surveys saw wholly (default 0: every "

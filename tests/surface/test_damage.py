@@ -239,18 +239,22 @@ def test_damage_levels():
         damage_level(3.0, 8.0)
 
 
-def test_erosion_outside_the_active_zone_is_not_counted():
-    X = np.unique(np.concatenate([np.linspace(-0.6, 0.6, 1201), [-0.1, -0.05, 0.0, 0.35, 0.4, 0.45]]))
-    # A small hole at the still water level (X' = 0 here) and a larger one 0.4 m up the slope (the crest).
-    Z = _notch(X, -0.05, 0.1, 0.0, 0.02) + _notch(X, 0.4, 0.1, 0.0, 0.05)
+def test_erosion_zones_reaching_into_the_active_zone_count_whole():
+    X = np.unique(np.concatenate([np.linspace(-0.6, 0.6, 1201), [-0.266, -0.216, -0.166, -0.1, -0.05, 0.0, 0.35, 0.4,
+                                                                   0.45]]))
     origin = (0.1, 0.05)
-    swl = origin[1]  # the slope line meets the SWL at the origin
-    everywhere = profile_damage(_slope_profile(X, 0 * X), _slope_profile(X, Z), DN50, COT, origin)
-    assert abs(everywhere.A_e - 0.1 * 0.05 / 2) < 1e-12  # the crest's hole, counted without a zone
+    swl = origin[1]  # the slope line meets the SWL at the origin: X' = 0
     zone = (slope_abscissa(swl, COT, origin) - 6 * DN50, slope_abscissa(swl, COT, origin) + 4 * DN50)
+    # A small hole at the still water level, a larger one 0.4 m up the slope (the crest) and one across the
+    # active zone's lower end (X' = -0.216 m), half of it outside the zone.
+    Z = _notch(X, -0.05, 0.1, 0.0, 0.02) + _notch(X, 0.4, 0.1, 0.0, 0.05) + _notch(X, zone[0], 0.1, 0.0, 0.03)
+    everywhere = profile_damage(_slope_profile(X, 0 * X), _slope_profile(X, Z), DN50, COT, origin)
+    assert abs(everywhere.A_e - 0.1 * 0.05 / 2) < 1e-12 and len(everywhere.erosion) == 3  # the crest's, without a zone
     active = profile_damage(_slope_profile(X, 0 * X), _slope_profile(X, Z), DN50, COT, origin, zone)
-    assert abs(active.A_e - 0.1 * 0.02 / 2) < 1e-12 and len(active.erosion) == 1
-    assert active.swept == pytest.approx(zone)
+    # The crest's hole is not counted; the one across the zone's end is, whole (not the half inside the zone).
+    assert len(active.erosion) == 2 and all(zn.end < 0.3 for zn in active.erosion)
+    assert abs(active.A_e - 0.1 * 0.03 / 2) < 1e-12 and active.d_e == pytest.approx(0.03)
+    assert active.erosion[0].start == pytest.approx(zone[0] - 0.05) and active.swept == everywhere.swept
 
 
 def _dems(rows_with_hole, depth=0.03, cot=COT, spacing=0.004):
@@ -304,8 +308,25 @@ def test_no_silent_zeros():
     off[before.y > 0.25] = -0.2
     result = stretch_damage(DEM(before.x, before.y, off, before.spacing), after, DN50, COT, 0.0, (0.0, 0.0),
                             stretch=(-0.3, 0.3))
-    assert any("off the design slope" in why for _, why in result.skipped)
+    assert any("under the design slope: not a cross-section" in why for _, why in result.skipped)
     assert all(y <= 0.25 for y, _ in result.profiles)
+
+
+def test_a_section_along_one_rock_is_kept_and_the_underlayer_beside_the_armour_is_not():
+    from jaxstereo._surface.damage_report import stretch_damage
+
+    before, _ = _dems(lambda Y: np.zeros_like(Y, bool))
+    to_vertical = np.hypot(COT, 1) / COT  # a normal offset of the slope plane, as a height
+    z = before.z.copy()
+    z[np.abs(before.y) < 0.002] += 1.5 * DN50 * to_vertical  # one 4 mm section along the top of a row of rocks
+    z[np.abs(before.y) > 0.2] -= 1.8 * DN50 * to_vertical  # the underlayer, beside the armour (|y| < 0.2 m)
+    surface = DEM(before.x, before.y, z, before.spacing)
+    result = stretch_damage(surface, surface, DN50, COT, 0.0, (0.0, 0.0), profile_spacing_m=0.004, stretch=(-0.3, 0.3))
+    ys = np.array([y for y, _ in result.profiles])
+    assert np.any(np.abs(ys) < 0.002)  # the rock's section is one of the armour's
+    assert np.all(np.abs(ys) <= 0.2 - DN50 + 1e-9) and ys.min() < -0.15 and ys.max() > 0.15
+    assert any("under the design slope" in why for y, why in result.skipped if abs(y) > 0.2)
+    assert result.S_max == 0.0
 
 
 def test_profiler_foot_bridges_crevices_and_keeps_holes():
