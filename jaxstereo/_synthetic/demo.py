@@ -224,9 +224,10 @@ def _report_markdown(s: dict) -> str:
                      f"{secs['rectify+match (s)']:.1f} / {secs['triangulate (s)']:.1f} |")
     lines += ["", "![stage III survey](survey_stageIII.png)", "", "## Damage", "",
               f"Tested stretch y {TESTED_STRETCH[0]:+.2f} to {TESTED_STRETCH[1]:+.2f} m (the central part of the 1 m wide "
-              "model); erosion counted in the active zone z "
+              "model); erosion counted in the zones that reach into the active zone z "
               + " to ".join(f"{z:.3f}" for z in next(iter(s["damage"].values()))["active_zone_z_m"])
-              + " m (6 Dn50 below to 4 Dn50 above the SWL along the slope); surfaces as a Dn50/4 ball foot sees them. "
+              + " m (6 Dn50 below to 4 Dn50 above the SWL along the slope), each whole; surfaces as a Dn50/4 ball "
+              "foot sees them. "
               "S is the characteristic S of the stretch (its averaged profile), and the level is that S's on the 1:2 "
               "slope; S max is the worst single profile (every Dn50 across). sigma is S's standard deviation from the surveys' "
               "own error bars (matching, calibration, water level), sampled through the whole damage computation; "
