@@ -165,10 +165,10 @@ ON_SLOPE_DN50 = (1.0, 2.0)
 
 def _off_the_slope(x, z, cot, origin, zone, dn50, spacing: float) -> dict[int, str]:
     """Why each initial cross-section (the rows of `z` (m, n) over the abscissae `x` (n,), metres; rows `spacing`
-    metres apart, in order) is not one of the structure's, for those that are not (row -> reason): over the
-    active zone, the median over the strip of sections within Dn50 of it of each section's median signed distance
-    from the design slope line (positive outwards) must lie within `ON_SLOPE_DN50` (under, over) Dn50 of it. Sections past the
-    sides of the model (the underlayer beside the armour, the bare floor) fail this.
+    metres apart, in order) is not one of the structure's, for those that are not (row -> reason): each section's
+    median signed distance from the design slope line over the active zone (positive outwards), and the median of
+    these over the strip of sections within Dn50 of it must lie within `ON_SLOPE_DN50` (under, over) Dn50 of the
+    line. Sections past the sides of the model (the underlayer beside the armour, the bare floor) fail this.
 
     The strip, signed, and not the section's distance alone: a 5 mm section can run along the flank of one rock,
     and with the active zone high on the slope (a deep SWL) over the crest's edge too. On the POV-Ray flume's
