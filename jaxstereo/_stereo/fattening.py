@@ -45,12 +45,12 @@ def drop_fattened(image: np.ndarray, disparity: np.ndarray, reach_px: int = 12, 
 
 
 def _in_bands(pixels, disparity, *settings):
-    """`_along_rows` on bands of rows, one per core; a row's edges are averaged with its neighbours', one row
+    """`_along_rows` on bands of rows, on a thread per core; a row's edges are averaged with its neighbours', one row
     of halo."""
     def band(start: int, stop: int) -> tuple:
         return (_along_rows(pixels[start:stop], disparity[start:stop], *settings),)
 
-    return map_row_bands(band, disparity.shape[0], 1)[0]
+    return map_row_bands(band, disparity.shape[0], 1, width=disparity.shape[1])[0]
 
 
 def edge_strength(pixels: np.ndarray) -> np.ndarray:

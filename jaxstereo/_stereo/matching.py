@@ -175,8 +175,9 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     the error; dropping the fit for the small patch or SGBM's value covered the error too but raised the
     boards' submerged RMSE from 1.20 to 1.29 mm (nadir) and from 0.65 to 0.82 mm (oblique).
     Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them. The work runs on bands of
-    rows, one per core (`map_row_bands`), with the whole image's values (1.2 -> 0.73 s on the development
-    flume's 1728x1152 pair, 2 cores).
+    rows on a thread per core (`map_row_bands`), with the whole image's values (1.2 -> 0.73 s on the development
+    flume's 1728x1152 pair, 2 cores), each band within `MAX_BAND_PIXELS` (its memory, not the image's size,
+    sets the step's peak memory).
     On the POV-Ray flume's nadir board the survey's error normal to the board is 1.15 mm RMS under water
     (SGBM's own sub-pixel values: 3.09 mm; 1.33 mm when the spread was taken about the patch's mean, which on
     the inclined board left 1 % of the pixels to SGBM's values). On its dry rubble, against disparities
@@ -229,7 +230,7 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     # Each result depends on the rows within two windows' half-widths (a window's sums, then `_disagreement`'s
     # window over them): bands of rows extended by that much give the whole image's values.
     halo = 2 * (max(window, small_window or 0, sigma_window) // 2)
-    return Subpixel(*map_row_bands(band, h, halo))
+    return Subpixel(*map_row_bands(band, h, halo, width=w))
 
 
 def _refine_rows(L, Rimg, gradient, d0, valid, rows, v, shift: float, window: int, small_window: int | None,
@@ -249,6 +250,7 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, v, shift: float, window: in
             continue
         g, sampled = (_gather(image, columns - k, rows) for image in (gradient, Rimg))
         products.append(_fit_products(g, L - sampled, k - np.float32(shift), weight, residuals))
+        del g, sampled  # (b, w, c) each: freed before the next base's, and before the window sums
     channels = L.shape[2]
     sigma_sgbm = None
     block = _window_fit(products[0], (sigma_window, sigma_window), channels) if products else None  # SGBM's own
@@ -267,14 +269,16 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, v, shift: float, window: in
     # difference (on the POV-Ray flume's nadir board, 0.09 px of pixel-to-pixel noise: 1.85 mm RMS
     # under water where the blend inside the sums gives 1.29 mm).
     blended = [(1 - fraction) * a + fraction * b for a, b in zip(products[0][:4], products[1][:4])]
-    large = _refine_in_windows(products[0], blended, (block, block_at_sgbm[1]), d0, shift, plane_terms, valid, window,
+    lower = products[0]
+    del products  # the upper base's terms live on in `blended` only
+    large = _refine_in_windows(lower, blended, (block, block_at_sgbm[1]), d0, shift, plane_terms, valid, window,
                                channels, with_sigma, v, above)
     refined, sigma_refined, keep, straddles = large.refined, large.sigma, large.kept, large.straddles
     off_plane = large.off_plane
     if small_window is not None and small_window < window:
         # Where the surface is curved within the large window (rubble), its fit averages over the relief; the
         # small window's fit is taken where the two disagree by more than their difference's noise.
-        small_fit = _refine_in_windows(products[0], blended, (block, block_at_sgbm[1]), d0, shift, plane_terms, valid,
+        small_fit = _refine_in_windows(lower, blended, (block, block_at_sgbm[1]), d0, shift, plane_terms, valid,
                                        small_window, channels, True, v, above)
         small, sigma_small, keep_small = small_fit.refined, small_fit.sigma, small_fit.kept
         large_sigma = sigma_refined if sigma_refined is not None else np.zeros_like(small)
@@ -381,21 +385,38 @@ def _disparity_plane(terms, window: int, v):
     n, su, sv, suu, svv, suv, sd, sdu, sdv, sdd = (cv2.boxFilter(a, -1, box, normalize=False) for a in terms)
     m = np.maximum(n, np.float32(1.0))
     mu, mv, md = su / m, sv / m, sd / m
-    cuu, cvv = suu - su * mu, svv - sv * mv
-    cuv, cdu, cdv = suv - su * mv, sdu - sd * mu, sdv - sd * mv
-    cdd = sdd - sd * md
-    det = cuu * cvv - cuv * cuv
+    # The central moments overwrite the sums they come from, and each array goes once it is used: the same float32
+    # operations in the same order, about half the memory (the sub-pixel step's peak; a fresh process pays for
+    # every page it touches first).
+    cuu, cvv, cuv, cdu, cdv, cdd = suu, svv, suv, sdu, sdv, sdd
+    cuu -= su * mu
+    cvv -= sv * mv
+    cuv -= su * mv
+    cdu -= sd * mu
+    cdv -= sd * mv
+    cdd -= sd * md
+    del su, sv, sd, suu, svv, suv, sdu, sdv, sdd
+    det = cuu * cvv
+    det -= cuv * cuv
     ok = det > np.float32(1e-3) * cuu * cvv  # a patch with its matched pixels on one line has no plane
     det[~ok] = 1.0
     a = (cvv * cdu - cuv * cdv) / det
     b = (cuu * cdv - cuv * cdu) / det
+    del det, cuu, cvv, cuv
     a[~ok] = 0.0
     b[~ok] = 0.0
-    residual = cdd - a * cdu - b * cdv
+    residual = cdd
+    residual -= a * cdu
+    residual -= b * cdv
+    del cdu, cdv
     np.maximum(residual, 0.0, out=residual)
     u = _centred_columns(n.shape[1])
-    centre = md + a * (u - mu) + b * (v - mv)
-    return n, (a, b), np.sqrt(residual / m), centre
+    centre = np.subtract(u, mu, out=mu)
+    centre *= a
+    centre += md
+    centre += b * (v - mv)
+    residual /= m
+    return n, (a, b), np.sqrt(residual, out=residual), centre
 
 
 def _energy_centroid(gg, s_gg, box, v):

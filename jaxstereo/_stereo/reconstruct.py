@@ -292,7 +292,7 @@ def _row_offsets(table: np.ndarray, disparity, search):
         offset[~valid] = np.nan
         return (offset,)
 
-    return map_row_bands(band, h, 0)[0]
+    return map_row_bands(band, h, 0, width=w)[0]
 
 
 def _trilinear(table: np.ndarray, coords) -> np.ndarray:

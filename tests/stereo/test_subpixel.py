@@ -130,7 +130,7 @@ def test_bands_of_rows_on_threads_give_the_whole_images_values(monkeypatch):
     for a, b in zip(whole, banded):
         np.testing.assert_array_equal(a, b)
     real_map = row_bands.map_row_bands
-    monkeypatch.setattr(matching, "map_row_bands", lambda fn, h, halo: real_map(fn, h, halo - 1))
+    monkeypatch.setattr(matching, "map_row_bands", lambda fn, h, halo, **size: real_map(fn, h, halo - 1, **size))
     short = refine()
     assert not all(np.array_equal(a, b, equal_nan=True) for a, b in zip(whole, short))
 
