@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import gc
 import os
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .._geometry.errors import JaxStereoError
+from .garbage import collect_garbage_rarely
 from .parser import build_parser
 
 
@@ -606,7 +608,10 @@ class _OutlivesItsReader:
 
 def main(argv=None, *, own_process: bool = False) -> int:
     """Run the command line; returns the exit status. `own_process` (the `jaxstereo` command, `run`): the process
-    is the command's alone, and a repeated `reconstruct` takes one malloc arena (`allocator.py`)."""
+    is the command's alone: its garbage collector runs less often (`garbage.py`), and a repeated `reconstruct`
+    takes one malloc arena (`allocator.py`)."""
+    if own_process:
+        collect_garbage_rarely()
     parser = build_parser()
     args = parser.parse_args(argv)
     if not args.command:
@@ -630,6 +635,9 @@ def main(argv=None, *, own_process: bool = False) -> int:
     args.images_read_ahead = _read_images_ahead(args)
     args.match_ahead = _match_ahead(plan, args.images_read_ahead, args)
     import jax
+
+    if own_process:
+        gc.freeze()  # JAX's modules live as long as the process: no collection need walk them (garbage.py)
 
     from .._stereo.table_cache import use_table_cache
 
