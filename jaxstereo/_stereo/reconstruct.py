@@ -18,6 +18,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -382,18 +383,23 @@ def reconstruct(
     disparity, undetermined = _drop_undetermined(subpixel, options.max_sigma_disparity_px)
     disparity, off_surface = _drop_off_surface(disparity, subpixel)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
+
+    # The photometric check runs on a thread beside the triangulation (its matches are dropped from the points after):
+    # each is numpy, OpenCV or XLA work that leaves the GIL and a core to the other.
+    t2 = time.perf_counter()
+    check = options.max_photometric_ratio is not None and np.isfinite(disparity).any()  # none: refused below
+    with ThreadPoolExecutor(1, thread_name_prefix="photometric-check") as side:
+        checking = (side.submit(photometric_outliers, rect_l, rect_r, disparity, offset, options.max_photometric_ratio)
+                    if check else None)
+        loading.join()
+        kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px,
+                                    dropped=checking.result if checking is not None else lambda: None)
     photometric = 0
-    if options.max_photometric_ratio is not None and np.isfinite(disparity).any():  # none: refused below
-        t1 = time.perf_counter()
-        outliers = photometric_outliers(rect_l, rect_r, disparity, offset, options.max_photometric_ratio)
+    if checking is not None:
+        outliers = checking.result()
         photometric = int(np.count_nonzero(outliers))
         disparity = np.where(outliers, np.nan, disparity)
-        timings["photometric check (s)"] = time.perf_counter() - t1
-
-    t2 = time.perf_counter()
-    loading.join()
-    kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px)
-    timings["triangulate (s)"] = time.perf_counter() - t2
+    timings["triangulate (s)"] = time.perf_counter() - t2  # with the photometric check beside it
     survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model)
     if on_points is not None:
         on_points(survey)
@@ -484,9 +490,11 @@ class _Kept:
     median_gap_px: float
 
 
-def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offset, z_range, max_ray_gap_px) -> _Kept:
+def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offset, z_range, max_ray_gap_px,
+                         dropped: Callable[[], np.ndarray | None] = lambda: None) -> _Kept:
     """Triangulate every match (exactly, chunked); keep those whose rays meet within `max_ray_gap_px` and
-    whose point lies in `z_range`."""
+    whose point lies in `z_range`, and that `dropped()` (called once the points are computed: (h, w) bool, or
+    None) does not mark. The counts are those of the matches not marked, as if they had never been matched."""
     rl, rr, v, u = _pairs_from_disparity(disparity)
     if offset is not None:
         rr[:, 1] += offset[v, u]
@@ -494,17 +502,20 @@ def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offse
         raise JaxStereoError("no matches survived: SGBM found no match in the expected depth range (no shared texture?)")
     points, gap, submerged, ok, distance = _chunked(
         _triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model), rl, rr)
+    marked = dropped()
+    listed = np.ones(rl.shape[0], bool) if marked is None else ~marked[v, u]
     gap_px = gap * float(rect.K[0, 0]) / np.maximum(distance, 1e-9)
-    finite = ok & np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])  # (n, 3) reduced column by column: 3x faster
+    # (n, 3) reduced column by column: 3x faster
+    finite = listed & ok & np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])
     meets = finite & (gap_px <= max_ray_gap_px)
     inside = (points[:, 2] >= z_range[0]) & (points[:, 2] <= z_range[1])
     keep = np.flatnonzero(meets & inside)
     if keep.size == 0:
         raise JaxStereoError("no matches survived: the images share no matchable texture in the expected depth range")
-    counts = {"matches": int(rl.shape[0]), "dropped_rays_apart": int(np.sum(finite & ~meets)),
+    counts = {"matches": int(np.count_nonzero(listed)), "dropped_rays_apart": int(np.sum(finite & ~meets)),
               "dropped_outside_height_range": int(np.sum(meets & ~inside)),
               "dropped_above_height_range": int(np.sum(meets & (points[:, 2] > z_range[1]))),
-              "dropped_invalid_rays": int(np.sum(~finite))}
+              "dropped_invalid_rays": int(np.sum(listed & ~finite))}
     return _Kept(v[keep], u[keep], points.take(keep, axis=0), submerged[keep].astype(bool), counts,
                  float(np.median(gap_px[keep])))
 

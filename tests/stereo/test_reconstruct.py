@@ -132,6 +132,33 @@ def test_a_scene_rising_past_the_height_range_is_reported(board):
     assert summary["dropped_above_height_range"] == 0 and summary["warnings"] == []
 
 
+def test_matches_dropped_beside_the_triangulation_leave_the_points_and_counts_of_a_disparity_without_them(x64):
+    """`reconstruct` runs the photometric check beside the triangulation and drops its matches from the points
+    after (`_triangulate_matches`'s `dropped`): the points, pixels and every count must be those of triangulating
+    the disparity without those matches. Disparities across the whole search range put some points below the
+    height range and some above it."""
+    from jaxstereo._stereo.reconstruct import _search_range, _triangulate_matches
+    from jaxstereo._stereo.rectify import rectify_checked
+
+    rig = Rig(*flume_rig(realistic_rig_spec(**PAPER)))
+    water, z_range = js.Interface(0.18), (-0.05, 0.3)
+    rect = rectify_checked(rig.left, rig.right, water, "water")
+    first, count = _search_range(rect, rig, water, z_range, ReconstructOptions())
+    rng = np.random.default_rng(7)
+    shape = (288, 432)  # the rectified image's top left corner
+    disparity = (first + count * rng.random(shape)).astype(np.float32)
+    disparity[rng.random(shape) < 0.1] = np.nan
+    marked = rng.random(shape) < 0.2
+    dropped = _triangulate_matches(rect, rig, water, "exact", disparity, None, z_range, 1.0, dropped=lambda: marked)
+    without = _triangulate_matches(rect, rig, water, "exact", np.where(marked, np.nan, disparity), None, z_range, 1.0)
+    for name in ("v", "u", "points", "submerged"):
+        np.testing.assert_array_equal(getattr(dropped, name), getattr(without, name))
+    assert dropped.counts == without.counts and dropped.median_gap_px == without.median_gap_px
+    assert without.counts["dropped_above_height_range"] > 0 and without.counts["dropped_outside_height_range"] > (
+        without.counts["dropped_above_height_range"])  # some below the range too
+    assert without.counts["matches"] == np.count_nonzero(np.isfinite(disparity) & ~marked)
+
+
 def test_reconstruct_bad_input(board):
     spec, rig, views = board
     left, right = views[0].image, views[1].image
