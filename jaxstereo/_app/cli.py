@@ -174,7 +174,7 @@ def _print_calibration(stereo, report: dict, rig, calibration: dict) -> None:
 
 def _cmd_reconstruct(args) -> int:
     import time
-    from concurrent.futures import ThreadPoolExecutor
+    from concurrent.futures import ThreadPoolExecutor, wait
 
     from .images import check_pair, read_image
     from .io import write_bytes_atomic, write_text_atomic
@@ -187,7 +187,7 @@ def _cmd_reconstruct(args) -> int:
     from .._calibration.rig import load_rig
     from .._stereo.matching import MatchOptions
     from .._stereo.reconstruct import ReconstructOptions, reconstruct
-    from .._stereo.survey import survey_preview_png, survey_summary_json
+    from .._stereo.survey import SurveyWriter, survey_preview_png, survey_summary_json
 
     start = time.perf_counter()
     rig = load_rig(args.rig)
@@ -205,20 +205,29 @@ def _cmd_reconstruct(args) -> int:
                                  water_level_std_m=args.water_level_std,
                                  max_photometric_ratio=args.photometric_ratio or None)
     preview = Path(args.preview) if args.preview else output.with_name(output.stem + "_preview.png")
-    with ThreadPoolExecutor(2) as side:  # the preview is drawn (in memory) while the errors are propagated
-        drawing = []
+    # The preview is drawn (in memory) and the points written while their errors are propagated.
+    with ThreadPoolExecutor(2) as side:
+        drawing, writing = [], []
+        writer = SurveyWriter(output)
 
-        def draw(points):
+        def ahead(points):
             title = (f"{output.name}: {len(points)} points, model {points.model}, "
                      f"{100 * points.submerged.mean():.0f}% submerged")
             drawing.append(side.submit(survey_preview_png, points, rig.image_size, title))
+            writing.append(side.submit(writer.write_points, points))
 
-        survey, summary = reconstruct(left, right, rig, args.water_level, options, on_points=draw,
-                                      match_ahead=getattr(args, "match_ahead", None))
-        start = time.perf_counter()
-        written = side.submit(_write_survey_files, survey, output, args.ply)
-        png = drawing[0].result()
-        written.result()
+        try:
+            survey, summary = reconstruct(left, right, rig, args.water_level, options, on_points=ahead,
+                                          match_ahead=getattr(args, "match_ahead", None))
+            start = time.perf_counter()
+            writing[0].result()
+            written = side.submit(_finish_survey_files, writer, survey, args.ply)
+            png = drawing[0].result()
+            written.result()
+        except BaseException:
+            wait(writing)  # nothing writes the file any more
+            writer.discard()
+            raise
     write_bytes_atomic(preview, png)  # only once the survey is written: a failed command leaves no preview
     summary["seconds"] = {"load (s)": load_s, **summary["seconds"],
                           "write and preview (s)": time.perf_counter() - start}
@@ -244,11 +253,11 @@ def _cmd_reconstruct(args) -> int:
     return 0
 
 
-def _write_survey_files(survey, output: Path, ply: str | None) -> None:
-    """The survey `.npz` and, when asked for, its PLY."""
-    from .._stereo.survey import save_ply, save_survey
+def _finish_survey_files(writer, survey, ply: str | None) -> None:
+    """The survey `.npz` whose points `writer` (a `SurveyWriter`) wrote and, when asked for, its PLY."""
+    from .._stereo.survey import save_ply
 
-    save_survey(survey, output)
+    writer.finish(survey)
     if ply:
         save_ply(survey, ply)
 

@@ -10,15 +10,9 @@ from pathlib import Path
 
 @contextlib.contextmanager
 def atomic_path(path):
-    """Yield a temporary path beside `path`; on success rename it to `path`, on error remove it.
-
-    The temporary name keeps `path`'s suffix so that writers choosing a format by extension still work.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix,
-                               dir=path.parent)
-    os.close(fd)
+    """Yield a temporary path beside `path` (`temporary_path`); on success rename it to `path`, on error remove
+    it."""
+    tmp = temporary_path(path)
     try:
         yield tmp
         os.replace(tmp, path)
@@ -26,6 +20,16 @@ def atomic_path(path):
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
         raise
+
+
+def temporary_path(path) -> str:
+    """A new, empty file beside `path` (its folder made if need be) to write `path`'s content into before
+    renaming it; its name keeps `path`'s suffix, so that writers choosing a format by extension still work."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    return tmp
 
 
 def write_text_atomic(path, text: str) -> None:

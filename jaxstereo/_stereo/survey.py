@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from .._app.io import atomic_path
+from .._app.io import atomic_path, temporary_path
 from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike
 
@@ -70,20 +73,59 @@ class Survey:
 
 def save_survey(survey: Survey, path: PathLike) -> None:
     """Write the survey `.npz` atomically."""
-    path = Path(path)
-    if path.suffix != ".npz":
-        raise JaxStereoError(f"survey file {str(path)!r} must end in .npz")
-    extra = {}  # np.asarray: no copy of an array already of its type (a survey holds about 100 MB)
-    if survey.cov is not None:
-        extra["cov"] = np.asarray(survey.cov, dtype=np.float32)
-    for key in ("sigma_z_match", "sigma_z_level", "dz_subpixel"):
-        if getattr(survey, key) is not None:
-            extra[key] = np.asarray(getattr(survey, key), dtype=np.float32)
-    with atomic_path(path) as tmp:
-        np.savez(tmp, points=np.asarray(survey.points, dtype=np.float64), colors=np.asarray(survey.colors, np.uint8),
-                 pixels=np.asarray(survey.pixels, np.float32), submerged=np.asarray(survey.submerged, bool),
-                 rig=np.array(survey.rig_json), model=np.array(survey.model),
-                 water_level=np.array(survey.water_level, dtype=np.float64), **extra)
+    writer = SurveyWriter(path)
+    try:
+        writer.write_points(survey)
+        writer.finish(survey)
+    except BaseException:
+        writer.discard()
+        raise
+
+
+class SurveyWriter:
+    """A survey `.npz` written in two steps, under a temporary name beside `path` until the second: the points
+    as soon as they are known (`write_points`), then their error fields (`finish`), which renames the file to
+    `path`; `discard` removes it instead. The command line writes the points (about half of a survey's 100 MB)
+    while their errors are propagated. The file is the one `np.savez` writes (stored, not compressed)."""
+
+    def __init__(self, path: PathLike):
+        self.path = Path(path)
+        if self.path.suffix != ".npz":
+            raise JaxStereoError(f"survey file {str(self.path)!r} must end in .npz")
+        self._temporary = temporary_path(self.path)
+        try:
+            self._archive = zipfile.ZipFile(self._temporary, "w", zipfile.ZIP_STORED, allowZip64=True)
+        except BaseException:
+            os.remove(self._temporary)
+            raise
+
+    def write_points(self, survey: Survey) -> None:
+        """The survey's points, colours, pixels, flags, rig, model and water level."""
+        # np.asarray: no copy of an array already of its type
+        self._write(points=np.asarray(survey.points, dtype=np.float64), colors=np.asarray(survey.colors, np.uint8),
+                    pixels=np.asarray(survey.pixels, np.float32), submerged=np.asarray(survey.submerged, bool),
+                    rig=np.array(survey.rig_json), model=np.array(survey.model),
+                    water_level=np.array(survey.water_level, dtype=np.float64))
+
+    def finish(self, survey: Survey) -> None:
+        """The survey's error fields (those it has), then the file under its own name."""
+        fields = {key: np.asarray(getattr(survey, key), dtype=np.float32)
+                  for key in ("cov", "sigma_z_match", "sigma_z_level", "dz_subpixel") if getattr(survey, key) is not None}
+        self._write(**fields)
+        self._archive.close()
+        os.replace(self._temporary, self.path)
+
+    def discard(self) -> None:
+        """Remove the temporary file (nothing is left at `path`); after `finish`, nothing to do."""
+        with contextlib.suppress(OSError):  # a full disk fails the archive's last write: removed all the same
+            self._archive.close()
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(self._temporary)
+
+    def _write(self, **arrays: np.ndarray) -> None:
+        for name, value in arrays.items():
+            with self._archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, value, allow_pickle=False)
 
 
 def load_survey(path: PathLike) -> Survey:

@@ -104,6 +104,21 @@ def test_reconstruct_broken_input(files, tmp_path, capfd):
     _check(capfd, code, "--photometric-ratio must be >= 0", out)
 
 
+def test_reconstruct_failing_after_its_points_were_written_leaves_nothing(files, tmp_path, capfd, monkeypatch):
+    """The command writes the survey's points while their errors are propagated (`SurveyWriter`); a failure
+    there leaves neither the survey nor its temporary file, nor a preview."""
+    from jaxstereo._stereo import reconstruct
+
+    def fail(*args, **kwargs):
+        raise js.JaxStereoError("the errors could not be propagated")
+
+    monkeypatch.setattr(reconstruct, "_point_errors", fail)
+    out = tmp_path / "out"
+    code = main(["reconstruct", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
+                 "--water-level", str(LEVEL), "-o", str(out / "s.npz")])
+    _check(capfd, code, "the errors could not be propagated", out)
+
+
 def test_refine_broken_input(files, tmp_path, capfd):
     out = tmp_path / "out"
     for (left, right, rig), text in _image_cases(files):
