@@ -232,7 +232,7 @@ def survey_preview_png(survey: Survey, image_size: tuple[int, int], title: str =
     grid[pv[ok], pu[ok]] = z[ok]
     im = axes[0].imshow(grid, cmap="viridis", vmin=vmin, vmax=vmax, extent=(-0.5, gw * step - 0.5, gh * step - 0.5, -0.5),
                         interpolation="nearest")
-    axes[0].set_title("height (m) in the left image")
+    axes[0].set_title("height (m) in the left image", y=1.0)  # y given: no search for ticks above the axes
     axes[0].set_xlabel("u (px)")
     axes[0].set_ylabel("v (px)")
     top, extent = _top_view(survey.points)
@@ -243,7 +243,7 @@ def survey_preview_png(survey: Survey, image_size: tuple[int, int], title: str =
     axes[1].set_aspect("equal", anchor="W")  # a narrow top view sits beside the image panel
     axes[1].set_xlabel("x (m)")
     axes[1].set_ylabel("y (m)")
-    axes[1].set_title("top view")
+    axes[1].set_title("top view", y=1.0)
     fig.colorbar(im, cax=fig.add_axes(PREVIEW_PANELS[2]), label="z (m)")
     fig.suptitle(title or f"survey: {len(survey)} points, model {survey.model}", y=0.98)
     return figure_png(fig)
