@@ -205,25 +205,30 @@ def _cmd_reconstruct(args) -> int:
                                  water_level_std_m=args.water_level_std,
                                  max_photometric_ratio=args.photometric_ratio or None)
     preview = Path(args.preview) if args.preview else output.with_name(output.stem + "_preview.png")
-    # The preview is drawn (in memory) and the points written while their errors are propagated.
-    with ThreadPoolExecutor(2) as side:
+    # While the points' errors are propagated, the preview is drawn (in memory) on one thread, and the points and
+    # then the covariances, as they come, are written on another (one step after the other: `SurveyWriter`).
+    with ThreadPoolExecutor(1, thread_name_prefix="preview") as drawer, \
+            ThreadPoolExecutor(1, thread_name_prefix="survey-file") as filer:
         drawing, writing = [], []
         writer = SurveyWriter(output)
 
         def ahead(points):
             title = (f"{output.name}: {len(points)} points, model {points.model}, "
                      f"{100 * points.submerged.mean():.0f}% submerged")
-            drawing.append(side.submit(survey_preview_png, points, rig.image_size, title))
-            writing.append(side.submit(writer.write_points, points))
+            drawing.append(drawer.submit(survey_preview_png, points, rig.image_size, title))
+            writing.append(filer.submit(writer.write_points, points))
+
+        def error_rows(fields, first, stop):
+            writing.append(filer.submit(writer.error_rows, fields, first, stop))
 
         try:
             survey, summary = reconstruct(left, right, rig, args.water_level, options, on_points=ahead,
-                                          match_ahead=getattr(args, "match_ahead", None))
+                                          match_ahead=getattr(args, "match_ahead", None), on_error_rows=error_rows)
             start = time.perf_counter()
-            writing[0].result()
-            written = side.submit(_finish_survey_files, writer, survey, args.ply)
+            writing.append(filer.submit(_finish_survey_files, writer, survey, args.ply))
             png = drawing[0].result()
-            written.result()
+            for step in writing:  # the first failure, in order
+                step.result()
         except BaseException:
             wait(writing)  # nothing writes the file any more
             writer.discard()

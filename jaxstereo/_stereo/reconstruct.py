@@ -325,7 +325,7 @@ def _trilinear(table: np.ndarray, coords) -> np.ndarray:
 def reconstruct(
     left_image: np.ndarray, right_image: np.ndarray, rig: Rig, water_level: float | None = None,
     options: ReconstructOptions = ReconstructOptions(), on_points: Callable[[Survey], None] | None = None,
-    match_ahead: MatchAhead | None = None,
+    match_ahead: MatchAhead | None = None, on_error_rows: Callable[[dict, int, int], None] | None = None,
 ) -> tuple[Survey, dict]:
     """Reconstruct a survey from one stereo pair: at most one point per left pixel, from one match.
 
@@ -351,6 +351,9 @@ def reconstruct(
       another thread there.
     - `match_ahead`: the command line's head start on the matching (see `match_ahead.py`): its match is taken when
       it came from this reconstruction's own plan, and it is given the plan otherwise.
+    - `on_error_rows`: called as `on_error_rows(fields, start, stop)` each time rows `start:stop` of the error
+      fields (`cov`, `sigma_z_match`, `sigma_z_level`, `dz_subpixel`: the arrays the survey will hold) are known,
+      in order, from the first row to the last: the command line writes them to the survey's file meanwhile.
 
     **Returns:** `(survey, summary)`; the summary holds point counts (and how many were dropped and why,
     those above the height range apart), the submerged fraction, the height range used (`height_range_m`),
@@ -408,7 +411,7 @@ def reconstruct(
         t3 = time.perf_counter()
         shared = shared_errors(rig, _level_std(rig, water_level, interface, options))
         errors = _point_errors(rect, rig, interface, shared, search, kept, subpixel._replace(disparity=disparity),
-                               refracts=model != "none")
+                               refracts=model != "none", on_rows=on_error_rows)
         survey = dataclasses.replace(survey, **errors)
         timings["uncertainty (s)"] = time.perf_counter() - t3
     under = offset[kept.v, kept.u][survey.submerged] if offset is not None else np.zeros(0)
@@ -468,13 +471,14 @@ def _drop_off_surface(disparity: np.ndarray, subpixel: Subpixel) -> tuple[np.nda
 
 
 def _point_errors(rect, rig: Rig, interface, shared: SharedErrors, search, kept: _Kept, subpixel: Subpixel,
-                  refracts: bool) -> dict:
-    """The kept points' error fields for the `Survey` (see `point_covariances`): the submerged points' from the
-    refracted sub-table when the model `refracts`, every point's from the in-air one otherwise."""
+                  refracts: bool, on_rows=None) -> dict:
+    """The kept points' error fields for the `Survey` (see `point_covariances`, and its `on_rows`): the submerged
+    points' from the refracted sub-table when the model `refracts`, every point's from the in-air one otherwise."""
     table = shared_covariance_table(rect, rig, interface, shared, rig.image_size, search)
     v, u = kept.v, kept.u
     return point_covariances(table, v, u, subpixel.disparity[v, u], kept.submerged & refracts,
-                             subpixel.sigma[v, u].astype(np.float64), subpixel.disagreement[v, u].astype(np.float64))
+                             subpixel.sigma[v, u].astype(np.float64), subpixel.disagreement[v, u].astype(np.float64),
+                             on_rows)
 
 
 @dataclasses.dataclass(frozen=True)

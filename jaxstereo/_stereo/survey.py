@@ -83,10 +83,12 @@ def save_survey(survey: Survey, path: PathLike) -> None:
 
 
 class SurveyWriter:
-    """A survey `.npz` written in two steps, under a temporary name beside `path` until the second: the points
-    as soon as they are known (`write_points`), then their error fields (`finish`), which renames the file to
-    `path`; `discard` removes it instead. The command line writes the points (about half of a survey's 100 MB)
-    while their errors are propagated. The file is the one `np.savez` writes (stored, not compressed)."""
+    """A survey `.npz` written in steps, under a temporary name beside `path` until the last: the points as soon
+    as they are known (`write_points`), the covariances row by row as they are propagated (`error_rows`, optional),
+    then the rest of the error fields (`finish`), which renames the file to `path`; `discard` removes it instead.
+    The command line writes the points and the covariances (four fifths of a survey's 100 MB) while the errors are
+    propagated. The file is the one `np.savez` writes (stored, not compressed). One step at a time: the steps
+    share one open archive."""
 
     def __init__(self, path: PathLike):
         self.path = Path(path)
@@ -98,6 +100,24 @@ class SurveyWriter:
         except BaseException:
             os.remove(self._temporary)
             raise
+        self._cov_member = None  # the covariances' member while its rows come in
+        self._cov_rows = 0
+        self._cov = None  # the covariances, once all their rows are written
+
+    def error_rows(self, fields: dict, start: int, stop: int) -> None:
+        """Rows `start:stop` of the error fields (`reconstruct`'s `on_error_rows`: in order, from the first): the
+        covariances (`fields["cov"]`, (n, 6) float32) go into the file now, the other fields with `finish`."""
+        cov = fields["cov"]
+        if start != self._cov_rows or cov.dtype != np.float32:
+            raise JaxStereoError(f"covariance rows {start}:{stop} came after {self._cov_rows} rows written")
+        if start == 0:
+            self._cov_member = self._archive.open("cov.npy", "w", force_zip64=True)
+            np.lib.format.write_array_header_1_0(self._cov_member, np.lib.format.header_data_from_array_1_0(cov))
+        self._cov_member.write(np.ascontiguousarray(cov[start:stop]).data)
+        self._cov_rows = stop
+        if stop == cov.shape[0]:
+            self._cov_member.close()
+            self._cov = cov
 
     def write_points(self, survey: Survey) -> None:
         """The survey's points, colours, pixels, flags, rig, model and water level."""
@@ -108,9 +128,14 @@ class SurveyWriter:
                     water_level=np.array(survey.water_level, dtype=np.float64))
 
     def finish(self, survey: Survey) -> None:
-        """The survey's error fields (those it has), then the file under its own name."""
+        """The survey's error fields (those it has, less the covariances `error_rows` wrote: they must be the
+        survey's), then the file under its own name."""
         fields = {key: np.asarray(getattr(survey, key), dtype=np.float32)
                   for key in ("cov", "sigma_z_match", "sigma_z_level", "dz_subpixel") if getattr(survey, key) is not None}
+        if self._cov_member is not None:
+            if self._cov is None or not (fields.get("cov") is self._cov or np.array_equal(fields.get("cov"), self._cov)):
+                raise JaxStereoError("the covariances written row by row are not the survey's")
+            del fields["cov"]
         self._write(**fields)
         self._archive.close()
         os.replace(self._temporary, self.path)
@@ -125,7 +150,11 @@ class SurveyWriter:
     def _write(self, **arrays: np.ndarray) -> None:
         for name, value in arrays.items():
             with self._archive.open(f"{name}.npy", "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, value, allow_pickle=False)
+                if value.ndim and value.flags.c_contiguous and value.dtype.kind in "biuf":
+                    np.lib.format.write_array_header_1_0(member, np.lib.format.header_data_from_array_1_0(value))
+                    member.write(value.data)  # the same bytes, without the copy `write_array` makes of each chunk
+                else:
+                    np.lib.format.write_array(member, value, allow_pickle=False)
 
 
 def load_survey(path: PathLike) -> Survey:

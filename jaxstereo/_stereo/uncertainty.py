@@ -22,6 +22,7 @@ Two kinds of error, kept apart because they behave differently downstream:
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -190,7 +191,8 @@ def load_point_covariances(image_size: tuple[int, int], search: tuple[int, int])
 
 
 def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.ndarray, refracted: np.ndarray,
-                      sigma_d: np.ndarray, disagreement: np.ndarray) -> dict:
+                      sigma_d: np.ndarray, disagreement: np.ndarray,
+                      on_rows: Callable[[dict, int, int], None] | None = None) -> dict:
     """Each point's covariance: shared (interpolated from `table`), matching (`sigma_d^2 j j^T`) and the sub-pixel
     estimators' disagreement (`delta^2 j j^T`, see `refine_disparity`), with `j` the point's derivative with
     respect to its disparity (interpolated from `table` too).
@@ -198,6 +200,9 @@ def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.n
     **Arguments:** the matches' left rectified rows `v`, columns `u`, disparities (k,) pixels; `refracted` (k,)
     bool: the table's submerged (refracted) sub-table, else the emerged (in-air) one; the disparities' std
     `sigma_d` (k,) pixels; `disagreement` (k,) pixels.
+
+    `on_rows(fields, start, stop)`, when given, is called each time rows `start:stop` of the returned `fields` are
+    known, in order (the command line writes them to the survey's file meanwhile); they do not change after.
 
     **Returns:** the `Survey` fields `cov` (k, 6) float32 [xx, yy, zz, xy, xz, yz] m^2, `sigma_z_match` and
     `sigma_z_level` (k,) float32 metres (the matching's and the water level's parts of the vertical std), and
@@ -220,6 +225,8 @@ def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.n
         chunk += [np.pad(a[part], (0, pad)) for a in per_point]
         for name, result in zip(("cov", *_PER_POINT_ERRORS), _chunk_errors(values, *chunk)):
             out[name][part] = np.asarray(result)[:count]
+        if on_rows is not None:
+            on_rows(out, start, start + count)
     return out
 
 
