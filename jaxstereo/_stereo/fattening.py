@@ -45,8 +45,8 @@ def drop_fattened(image: np.ndarray, disparity: np.ndarray, reach_px: int = 12, 
 
 
 def _in_bands(pixels, disparity, *settings):
-    """`_along_rows` on bands of rows, on a thread per core; a row's edges are averaged with its neighbours', one row
-    of halo."""
+    """`_along_rows` on bands of rows, on a thread per core; a row's edges are averaged with its neighbours',
+    one row of halo."""
     def band(start: int, stop: int) -> tuple:
         return (_along_rows(pixels[start:stop], disparity[start:stop], *settings),)
 

@@ -387,8 +387,8 @@ def reconstruct(
     disparity, off_surface = _drop_off_surface(disparity, subpixel)
     timings["sub-pixel (s)"] = time.perf_counter() - t1
 
-    # The photometric check runs on a thread beside the triangulation (its matches are dropped from the points after):
-    # each is numpy, OpenCV or XLA work that leaves the GIL and a core to the other.
+    # The photometric check runs on a thread beside the triangulation (its matches are dropped from the points
+    # after): each is numpy, OpenCV or XLA work that leaves the GIL and a core to the other.
     t2 = time.perf_counter()
     check = options.max_photometric_ratio is not None and np.isfinite(disparity).any()  # none: refused below
     with ThreadPoolExecutor(1, thread_name_prefix="photometric-check") as side:

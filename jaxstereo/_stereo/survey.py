@@ -108,7 +108,9 @@ class SurveyWriter:
         """Rows `start:stop` of the error fields (`reconstruct`'s `on_error_rows`: in order, from the first): the
         covariances (`fields["cov"]`, (n, 6) float32) go into the file now, the other fields with `finish`."""
         cov = fields["cov"]
-        if start != self._cov_rows or cov.dtype != np.float32:
+        if cov.dtype != np.float32:
+            raise JaxStereoError(f"the covariances must be float32, got {cov.dtype}")
+        if start != self._cov_rows:
             raise JaxStereoError(f"covariance rows {start}:{stop} came after {self._cov_rows} rows written")
         if start == 0:
             self._cov_member = self._archive.open("cov.npy", "w", force_zip64=True)
@@ -131,9 +133,11 @@ class SurveyWriter:
         """The survey's error fields (those it has, less the covariances `error_rows` wrote: they must be the
         survey's), then the file under its own name."""
         fields = {key: np.asarray(getattr(survey, key), dtype=np.float32)
-                  for key in ("cov", "sigma_z_match", "sigma_z_level", "dz_subpixel") if getattr(survey, key) is not None}
+                  for key in ("cov", "sigma_z_match", "sigma_z_level", "dz_subpixel")
+                  if getattr(survey, key) is not None}
         if self._cov_member is not None:
-            if self._cov is None or not (fields.get("cov") is self._cov or np.array_equal(fields.get("cov"), self._cov)):
+            cov = fields.get("cov")
+            if self._cov is None or not (cov is self._cov or np.array_equal(cov, self._cov)):
                 raise JaxStereoError("the covariances written row by row are not the survey's")
             del fields["cov"]
         self._write(**fields)
