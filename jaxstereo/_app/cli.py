@@ -210,9 +210,11 @@ def _cmd_reconstruct(args) -> int:
     with ThreadPoolExecutor(1, thread_name_prefix="preview") as drawer, \
             ThreadPoolExecutor(1, thread_name_prefix="survey-file") as filer:
         drawing, writing = [], []
-        writer = SurveyWriter(output)
+        writer = None
 
         def ahead(points):
+            nonlocal writer
+            writer = SurveyWriter(output)  # its temporary file from here on: a command stopped before leaves none
             title = (f"{output.name}: {len(points)} points, model {points.model}, "
                      f"{100 * points.submerged.mean():.0f}% submerged")
             drawing.append(drawer.submit(survey_preview_png, points, rig.image_size, title))
@@ -231,7 +233,8 @@ def _cmd_reconstruct(args) -> int:
                 step.result()
         except BaseException:
             wait(writing)  # nothing writes the file any more
-            writer.discard()
+            if writer is not None:
+                writer.discard()
             raise
     write_bytes_atomic(preview, png)  # only once the survey is written: a failed command leaves no preview
     summary["seconds"] = {"load (s)": load_s, **summary["seconds"],
