@@ -397,11 +397,8 @@ def reconstruct(
         loading.join()
         kept = _triangulate_matches(rect, rig, interface, model, disparity, offset, z_range, options.max_ray_gap_px,
                                     dropped=checking.result if checking is not None else lambda: None)
-    photometric = 0
-    if checking is not None:
-        outliers = checking.result()
-        photometric = int(np.count_nonzero(outliers))
-        disparity = np.where(outliers, np.nan, disparity)
+    # The outliers are among no kept point: the disparity needs no NaN at them for the errors, read at the points
+    photometric = int(np.count_nonzero(checking.result())) if checking is not None else 0
     timings["triangulate (s)"] = time.perf_counter() - t2  # with the photometric check beside it
     survey = _survey_of(kept, rect_l, left_map, rig, interface, options.model)
     if on_points is not None:
