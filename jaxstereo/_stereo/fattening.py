@@ -39,7 +39,9 @@ def drop_fattened(image: np.ndarray, disparity: np.ndarray, reach_px: int = 12, 
     pixels = image.reshape(image.shape[0], image.shape[1], -1).astype(np.float32)
     rows = _in_bands(pixels, disparity, reach_px, step_px, gap_px, edge_ratio)
     remaining = np.where(rows, np.nan, disparity)
-    columns = _in_bands(np.ascontiguousarray(np.swapaxes(pixels, 0, 1)), np.ascontiguousarray(remaining.T),
+    # The colour pixels go in as a transposed view, not a transposed copy: the edge strength read from it is the
+    # only contiguous array the column pass makes of them (on the development flume, 0.11 -> 0.08 s with int32)
+    columns = _in_bands(np.swapaxes(pixels, 0, 1), np.ascontiguousarray(remaining.T),
                         reach_px, step_px, gap_px, edge_ratio).T
     return rows | columns
 
@@ -71,9 +73,9 @@ def _along_rows(pixels, disparity, reach, step, gap, ratio):
     found = np.isfinite(disparity)
     edge = edge_strength(pixels)
     # For each matched pixel b, the previous matched pixel a of its row (within the gap) and the jump.
-    columns = np.arange(w)[None, :]
-    index = np.where(found, columns, -1)
-    previous = np.full((h, w), -1)
+    columns = np.arange(w, dtype=np.int32)[None, :]  # int32: half the memory traffic of the default int64
+    index = np.where(found, columns, np.int32(-1))
+    previous = np.full((h, w), -1, np.int32)
     previous[:, 1:] = np.maximum.accumulate(index, axis=1)[:, :-1]
     before = np.take_along_axis(disparity, np.maximum(previous, 0), axis=1)
     with np.errstate(invalid="ignore"):
@@ -111,4 +113,4 @@ def _along_rows(pixels, disparity, reach, step, gap, ratio):
     for start, stop in zip(starts, stops):
         np.add.at(flagged, (start[:, 0], start[:, 1]), 1)
         np.add.at(flagged, (start[:, 0], np.minimum(stop + 1, w)), -1)
-    return (np.cumsum(flagged, axis=1)[:, :w] > 0) & found
+    return (np.cumsum(flagged, axis=1, dtype=np.int32)[:, :w] > 0) & found
