@@ -268,7 +268,7 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, v, shift: float, window: in
     # carried that one fraction's noise (SGBM's, 0.3 px) into the result, times the two linearisations'
     # difference (on the POV-Ray flume's nadir board, 0.09 px of pixel-to-pixel noise: 1.85 mm RMS
     # under water where the blend inside the sums gives 1.29 mm).
-    blended = [(1 - fraction) * a + fraction * b for a, b in zip(products[0][:4], products[1][:4])]
+    blended = [(1 - fraction) * a + fraction * b for a, b in zip(products[0][:3], products[1][:3])]
     lower = products[0]
     del products  # the upper base's terms live on in `blended` only
     large = _refine_in_windows(lower, blended, (block, block_at_sgbm[1]), d0, shift, plane_terms, valid, window,
@@ -330,17 +330,17 @@ def _refine_in_windows(lower, blended, block, d0, shift, plane_terms, valid, win
     value at the patch's centre than `OFF_PLANE_SPREADS` times the patch's spread, and than `MAX_SPREAD_PX`.
     `straddles` the water where the patch has matches on both sides of it (`above` (h, w) float32, 1 for a
     match above it; None: no water). `lower` are the fit's per-pixel terms at the lower whole-pixel bases (with
-    the residual terms, `_fit_products`) and `blended` the first four terms of both bases, blended by each
+    the residual terms, `_fit_products`) and `blended` the first three terms of both bases, blended by each
     pixel's SGBM fraction."""
     box = (window, window)
+    count, slope, spread, centre = _disparity_plane(plane_terms, window, v)
     fit = _window_fit(blended, box, channels)
     sigma_refined = None
     if with_sigma:
         # The residual at the patch's own least-squares shift (before the move along the plane, which leaves
-        # the fit's noise as it is)
-        gg, s2 = _evaluate(_window_fit(lower, box, channels), fit[2])
+        # the fit's noise as it is). The matched pixels' count is the plane's: the same weights' window sums.
+        gg, s2 = _evaluate(_window_fit(lower, box, channels, count), fit[2])
         sigma_refined = MATCH_NOISE_SCALE * np.sqrt(s2 / np.maximum(gg, 1e-12))
-    count, slope, spread, centre = _disparity_plane(plane_terms, window, v)
     # The patch's one shift is its pixels' disparities averaged with their gradient energy as weights: on a
     # surface inclined to the image (disparity `slope` px per px) it is the disparity at the energy's centroid,
     # not at the patch's centre. Moved back to the centre along the plane:
@@ -518,13 +518,17 @@ def _channel_dot(a, b):
     return total
 
 
-def _window_fit(products, box, channels: int):
-    """Window sums of the fit's terms and its least-squares shift `d` (relative to the sums' `k`):
-    `(S_gg, S_ggk, d, S_rg, n samples, S_rr, S_rgk, S_ggkk)` (the last three with the residual terms)."""
-    sums = [cv2.boxFilter(a, -1, box, normalize=False) for a in products]
-    gg, ggk, rg, count = sums[:4]
+def _window_fit(products, box, channels: int, count=None):
+    """Window sums of the fit's terms `products` (`_fit_products`': `(gg, ggk, rg, weight, ...)`, or the first three
+    alone) and its least-squares shift `d` (relative to the sums' `k`): `(S_gg, S_ggk, d, S_rg, n samples, S_rr,
+    S_rgk, S_ggkk)` (the last three with the residual terms; n None without the weight). `count`, the weight's
+    window sum when it is known already, is not summed again."""
+    gg, ggk, rg = (cv2.boxFilter(a, -1, box, normalize=False) for a in products[:3])
+    if count is None and len(products) > 3:
+        count = cv2.boxFilter(products[3], -1, box, normalize=False)
     d = (ggk - rg) / np.maximum(gg, 1e-12)
-    return (gg, ggk, d, rg, count * channels, *sums[4:])
+    rest = [cv2.boxFilter(a, -1, box, normalize=False) for a in products[4:]]
+    return (gg, ggk, d, rg, None if count is None else count * channels, *rest)
 
 
 def _evaluate(fit, d):
