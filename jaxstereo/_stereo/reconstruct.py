@@ -474,8 +474,7 @@ def _point_errors(rect, rig: Rig, interface, shared: SharedErrors, search, kept:
     table = shared_covariance_table(rect, rig, interface, shared, rig.image_size, search)
     v, u = kept.v, kept.u
     return point_covariances(table, v, u, subpixel.disparity[v, u], kept.submerged & refracts,
-                             subpixel.sigma[v, u].astype(np.float64), subpixel.disagreement[v, u].astype(np.float64),
-                             on_rows)
+                             subpixel.sigma[v, u], subpixel.disagreement[v, u], on_rows)  # float32, as used there
 
 
 @dataclasses.dataclass(frozen=True)
