@@ -70,9 +70,10 @@ def local_residual_scale(residual: np.ndarray, block: int = SCALE_BLOCK_PX) -> n
     histogram = np.bincount(cell * levels + quantised, minlength=rows * cols * levels).reshape(rows * cols, levels)
     counts = histogram.sum(axis=1)
     medians = np.argmax(np.cumsum(histogram, axis=1) >= (counts[:, None] + 1) / 2, axis=1) / 4.0
-    overall = float(np.median(residual[valid]))
     enough = counts >= block * block / 8
-    grid = np.where(enough, medians, overall).reshape(rows, cols).astype(np.float32)
+    if not enough.all():  # the whole image's median, for the squares with too few matches only
+        medians = np.where(enough, medians, float(np.median(residual[valid])))
+    grid = medians.reshape(rows, cols).astype(np.float32)
     # Bilinear between square centres: resize to the padded image, whose squares are exactly `block` wide.
     scale = cv2.resize(grid, (cols * block, rows * block), interpolation=cv2.INTER_LINEAR)
     return scale[:h, :w]

@@ -62,6 +62,18 @@ def test_local_scale_is_the_block_median():
             assert centre == pytest.approx(np.nanmedian(block), abs=0.25)  # quantised to 1/4 grey level
 
 
+def test_local_scale_of_a_sparsely_matched_block_is_the_whole_images_median():
+    rng = np.random.default_rng(3)
+    residual = rng.gamma(2.0, 3.0, (256, 384)).astype(np.float32)
+    residual[:128, 128:256] *= 10  # a block ten times noisier than the rest...
+    sparse = np.zeros((128, 128), bool)
+    sparse[::4, ::4] = True  # ...with a sixteenth of its pixels matched: fewer than an eighth
+    residual[:128, 128:256][~sparse] = np.nan
+    scale = local_residual_scale(residual, block=128)
+    assert scale[64, 128 + 64] == pytest.approx(np.nanmedian(residual), abs=0.05)  # its own median is about 50
+    assert scale[128 + 64, 64] == pytest.approx(np.nanmedian(residual[128:, :128]), abs=0.25)  # a full block's own
+
+
 def _textured_pair(seed=2):
     """A background plane at disparity 12 and a foreground square at 20, both with random colour texture;
     the exact disparity map (h, w) and the images (h, w, 3)."""
