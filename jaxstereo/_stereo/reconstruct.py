@@ -326,6 +326,7 @@ def reconstruct(
     left_image: np.ndarray, right_image: np.ndarray, rig: Rig, water_level: float | None = None,
     options: ReconstructOptions = ReconstructOptions(), on_points: Callable[[Survey], None] | None = None,
     match_ahead: MatchAhead | None = None, on_error_rows: Callable[[dict, int, int], None] | None = None,
+    on_stage: Callable[[str], None] | None = None,
 ) -> tuple[Survey, dict]:
     """Reconstruct a survey from one stereo pair: at most one point per left pixel, from one match.
 
@@ -354,6 +355,9 @@ def reconstruct(
     - `on_error_rows`: called as `on_error_rows(fields, start, stop)` each time rows `start:stop` of the error
       fields (`cov`, `sigma_z_match`, `sigma_z_level`, `dz_subpixel`: the arrays the survey will hold) are known,
       in order, from the first row to the last: the command line writes them to the survey's file meanwhile.
+    - `on_stage`: called with each stage's name as it starts (the summary's `seconds` keys less " (s)":
+      "rectify+match", "sub-pixel", "triangulate", "uncertainty"), on the calling thread. The command line
+      imports matplotlib for its preview once the triangulation starts: XLA's work leaves a core free there.
 
     **Returns:** `(survey, summary)`; the summary holds point counts (and how many were dropped and why,
     those above the height range apart), the submerged fraction, the height range used (`height_range_m`),
@@ -362,6 +366,8 @@ def reconstruct(
     scene that rises past the height range's top).
     """
     timings = {}
+    stage = on_stage or (lambda name: None)
+    stage("rectify+match")
     t0 = time.perf_counter()
     interface = _interface_for(rig, water_level)
     level = float(interface.level) if interface is not None else None
@@ -377,6 +383,7 @@ def reconstruct(
                                                           match_ahead)
     timings["rectify+match (s)"] = time.perf_counter() - t0
 
+    stage("sub-pixel")
     t1 = time.perf_counter()
     offset = _row_offsets(offsets, disparity, search) if offsets is not None else None
     subpixel = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
@@ -389,6 +396,7 @@ def reconstruct(
 
     # The photometric check runs on a thread beside the triangulation (its matches are dropped from the points
     # after): each is numpy, OpenCV or XLA work that leaves the GIL and a core to the other.
+    stage("triangulate")
     t2 = time.perf_counter()
     check = options.max_photometric_ratio is not None and np.isfinite(disparity).any()  # none: refused below
     with ThreadPoolExecutor(1, thread_name_prefix="photometric-check") as side:
@@ -405,6 +413,7 @@ def reconstruct(
         on_points(survey)
     shared = None
     if options.uncertainty:
+        stage("uncertainty")
         t3 = time.perf_counter()
         shared = shared_errors(rig, _level_std(rig, water_level, interface, options))
         errors = _point_errors(rect, rig, interface, shared, search, kept, subpixel._replace(disparity=disparity),

@@ -128,8 +128,13 @@ def test_a_scene_rising_past_the_height_range_is_reported(board):
     assert f"{above} matches" in summary["warnings"][0]
     assert "above the height range's top, z = 0.250 m" in summary["warnings"][0]
     # The whole board inside the range: no match above it, no warning.
-    _, summary = reconstruct(views[0].image, views[1].image, rig, 0.18, ReconstructOptions(z_range_m=(-0.05, 0.4)))
+    stages = []
+    _, summary = reconstruct(views[0].image, views[1].image, rig, 0.18, ReconstructOptions(z_range_m=(-0.05, 0.4)),
+                             on_stage=stages.append)
     assert summary["dropped_above_height_range"] == 0 and summary["warnings"] == []
+    # Each stage was announced as it started, in order: the ones the summary times.
+    assert stages == ["rectify+match", "sub-pixel", "triangulate", "uncertainty"]
+    assert stages == [key.removesuffix(" (s)") for key in summary["seconds"]]
 
 
 def test_matches_dropped_beside_the_triangulation_leave_the_points_and_counts_of_a_disparity_without_them(x64):
