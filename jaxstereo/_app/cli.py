@@ -12,6 +12,7 @@ import numpy as np
 
 from .._geometry.errors import JaxStereoError
 from .garbage import collect_garbage_rarely
+from .gil import switch_threads_often
 from .parser import build_parser
 
 
@@ -634,8 +635,8 @@ class _OutlivesItsReader:
 
 def main(argv=None, *, own_process: bool = False) -> int:
     """Run the command line; returns the exit status. `own_process` (the `jaxstereo` command, `run`): the process
-    is the command's alone: its garbage collector runs less often (`garbage.py`), and a repeated `reconstruct`
-    takes one malloc arena (`allocator.py`)."""
+    is the command's alone: its garbage collector runs less often (`garbage.py`), `reconstruct` switches threads
+    more often (`gil.py`), and a repeated `reconstruct` takes one malloc arena (`allocator.py`)."""
     if own_process:
         collect_garbage_rarely()
     parser = build_parser()
@@ -643,6 +644,8 @@ def main(argv=None, *, own_process: bool = False) -> int:
     if not args.command:
         parser.print_help()
         return 0
+    if own_process and args.command == "reconstruct":
+        switch_threads_often()
     handler = {
         "demo": _cmd_demo,
         "batch": _cmd_batch,
