@@ -70,6 +70,7 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
     """
     from .reconstruct import (
         ReconstructOptions,
+        _at,
         _chunked,
         _interface_for,
         _match,
@@ -86,10 +87,10 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
     search = _search_range(rect, rig, interface, z_range, options)
     (_, _, disparity, _), _ = _match(rect, rig, left_image, right_image, search, options, None)
     offset = _row_offsets(_row_offset_table(rect, rig, interface, rig.image_size, search), disparity, search)
-    rl, rr, v, u = _pairs_from_disparity(disparity)
+    rl, rr, v, u, flat = _pairs_from_disparity(disparity)
     if rl.shape[0] == 0:
         return np.zeros((0, 2)), np.zeros((0, 2))
-    rr[:, 1] += offset[v, u]
+    rr[:, 1] += _at(offset, flat)
     pick = spread_over_grid(rl, rect.size, max_points)
     rough = ~(plane_residual_rms(disparity, v[pick], u[pick], KLT_WINDOW) <= ROUGH_RELIEF_PX)  # NaN: rough
     pl, pr = _chunked(_real_pixels, (rect, rig.left, rig.right), rl[pick], rr[pick])  # fixed size: compiled once
