@@ -51,6 +51,8 @@ def test_a_repeated_reconstruct_takes_it_before_any_thread(monkeypatch, tmp_path
     monkeypatch.setattr(cli, "_read_images_ahead", lambda args: calls.append("threads") or {})
     monkeypatch.setattr(cli, "_match_ahead", lambda plan, reading, args: None)
     monkeypatch.setattr(cli, "_cmd_reconstruct", lambda args: 0)
+    for setting in ("collect_garbage_rarely", "switch_threads_often"):  # the command's own process's, not pytest's
+        monkeypatch.setattr(cli, setting, lambda: None)
 
     def run(own_process: bool) -> list:
         calls.clear()
