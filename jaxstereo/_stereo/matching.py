@@ -206,26 +206,27 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     None when `with_sigma` is False (`disagreement` is zero without `subpixel`); the matches `off_surface` (h, w)
     bool (their `disparity` is SGBM's; None without `subpixel`).
     """
-    L = _channels(left)
     Rimg = _channels(right)
-    h, w = L.shape[:2]
+    h, w = disparity.shape
     valid = np.isfinite(disparity)
-    d0 = np.where(valid, disparity, 0.0).astype(np.float32)
-    # The right image is sampled at whole pixels through cv2.remap's nearest-neighbour lookup (a gather,
-    # clamped at the borders), on row `rows` and column u - k.
-    rows = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
-    if row_offset is not None:
-        rows = np.clip(np.rint(rows + np.where(valid, row_offset, 0.0)), 0, h - 1).astype(np.float32)
     gradient = cv2.Sobel(Rimg, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8).reshape(Rimg.shape)
-    shift = float(np.median(np.floor(d0[valid]))) if valid.any() else 0.0  # keeps the float32 sums' k terms small
+    # keeps the float32 sums' k terms small
+    shift = float(np.median(np.floor(disparity[valid].astype(np.float32)))) if valid.any() else 0.0
     v = np.arange(h, dtype=np.float32)[:, None] - np.float32(h // 2)  # rows from the image's centre
     settings = (window, small_window, sigma_window, subpixel, with_sigma)
-    above = None if waterline is None else valid & (d0 > waterline)  # matches above the water
 
-    def band(start: int, stop: int) -> Subpixel:
+    def band(start: int, stop: int) -> Subpixel:  # what depends on the band's rows alone is made there, on its thread
         rows_ = slice(start, stop)
-        return _refine_rows(L[rows_], Rimg, gradient, d0[rows_], valid[rows_], rows[rows_], v[rows_], shift, *settings,
-                            above=None if above is None else above[rows_])
+        valid_ = valid[rows_]
+        d0 = np.where(valid_, disparity[rows_], 0.0).astype(np.float32)
+        # The right image is sampled at whole pixels through cv2.remap's nearest-neighbour lookup (a gather,
+        # clamped at the borders), on row `rows` and column u - k.
+        rows = np.broadcast_to(np.arange(start, stop, dtype=np.float32)[:, None], d0.shape)
+        if row_offset is not None:
+            rows = np.clip(np.rint(rows + np.where(valid_, row_offset[rows_], 0.0)), 0, h - 1).astype(np.float32)
+        above = None if waterline is None else valid_ & (d0 > waterline[rows_])  # matches above the water
+        return _refine_rows(_channels(left[rows_]), Rimg, gradient, d0, valid_, rows, v[rows_], shift, *settings,
+                            above=above)
 
     # Each result depends on the rows within two windows' half-widths (a window's sums, then `_disagreement`'s
     # window over them): bands of rows extended by that much give the whole image's values.
