@@ -225,10 +225,10 @@ def _cmd_reconstruct(args) -> int:
 
         def stage(name):
             # The preview's matplotlib is imported while the points are triangulated: XLA's work and the photometric
-            # check leave a core idle there for a third of a second. Imported earlier, its Python work slowed the
-            # matching and the sub-pixel step down as much (their numpy steps need the GIL between array operations).
-            # On the development flume's pair (2 cores), a fresh command's median fell from 2.75 to 2.60 s, its CPU
-            # time from 4.54 to 4.38 s (12 alternated runs each).
+            # check leave a core idle there. Imported at the command's start, its Python work slowed the matching and
+            # the sub-pixel step instead (their numpy steps need the GIL between array operations). On the
+            # development flume's pair (2 cores), a fresh command's median fell from 2.75 to 2.60 s, its CPU time
+            # from 4.54 to 4.38 s (12 alternated runs each).
             if name == "triangulate":
                 import_matplotlib_in_background()
 
