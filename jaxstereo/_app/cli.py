@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .._geometry.errors import JaxStereoError
+from .allocator import keep_arrays_on_small_pages
 from .garbage import collect_garbage_rarely
 from .gil import switch_threads_often
 from .parser import build_parser
@@ -636,7 +637,8 @@ class _OutlivesItsReader:
 def main(argv=None, *, own_process: bool = False) -> int:
     """Run the command line; returns the exit status. `own_process` (the `jaxstereo` command, `run`): the process
     is the command's alone: its garbage collector runs less often (`garbage.py`), `reconstruct` switches threads
-    more often (`gil.py`), and a repeated `reconstruct` takes one malloc arena (`allocator.py`)."""
+    more often (`gil.py`) and keeps numpy's arrays on small pages, and a repeated `reconstruct` takes one malloc
+    arena (`allocator.py`)."""
     if own_process:
         collect_garbage_rarely()
     parser = build_parser()
@@ -646,6 +648,7 @@ def main(argv=None, *, own_process: bool = False) -> int:
         return 0
     if own_process and args.command == "reconstruct":
         switch_threads_often()
+        keep_arrays_on_small_pages()
     handler = {
         "demo": _cmd_demo,
         "batch": _cmd_batch,

@@ -1,5 +1,6 @@
 """The command line's one malloc arena (`_app/allocator.py`), seen through glibc's own statistics."""
 
+import os
 import platform
 import subprocess
 import sys
@@ -65,3 +66,32 @@ def test_a_repeated_reconstruct_takes_it_before_any_thread(monkeypatch, tmp_path
     plan.write_bytes(b"kept by an earlier command")
     assert run(True) == ["arena", "threads"]
     assert run(False) == ["threads"]  # a caller's own process (these tests) keeps its allocator
+
+
+# A command whose handler reports whether numpy asks for huge pages as the command found it (numpy's switch
+# returns its previous state).
+HUGE_PAGES_SCRIPT = """
+import sys
+from numpy._core.multiarray import _set_madvise_hugepage
+from jaxstereo._app import cli
+before = _set_madvise_hugepage(True)
+report = lambda args: print(before, _set_madvise_hugepage(True)) or 0
+cli._cmd_reconstruct = cli._cmd_grid = report
+command = {"reconstruct": ["reconstruct", "l.png", "r.png", "--rig", "rig.json", "-o", "s.npz"],
+           "grid": ["grid", "survey.npz", "-o", "dem.npz"]}[sys.argv[2]]
+sys.exit(cli.main(command, own_process=sys.argv[1] == "own"))
+"""
+
+
+def _huge_pages(mode: str, command: str) -> str:
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    env["JAXSTEREO_CACHE_DIR"] = "off"  # no match plan, no disk caches: nothing of the user's is touched
+    done = subprocess.run([sys.executable, "-c", HUGE_PAGES_SCRIPT, mode, command], capture_output=True, text=True,
+                          check=True, env=env)
+    return done.stdout.strip()
+
+
+def test_the_reconstruct_commands_own_process_keeps_numpys_arrays_on_small_pages():
+    assert _huge_pages("own", "reconstruct") == "True False"  # asked for by default; no more in the command
+    assert _huge_pages("library", "reconstruct") == "True True"  # a caller's process keeps numpy's setting
+    assert _huge_pages("own", "grid") == "True True"  # the other commands were not measured
