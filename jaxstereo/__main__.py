@@ -1,3 +1,3 @@
-from ._app.cli import run
+from ._app.command import run
 
 run()
