@@ -41,7 +41,7 @@ def photometric_residual(left: np.ndarray, right: np.ndarray, disparity: np.ndar
         rows = rows + np.where(valid, row_offset, 0.0).astype(np.float32)
     sampled = cv2.remap(right.astype(np.float32), columns, np.ascontiguousarray(rows, dtype=np.float32),
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    difference = np.abs(left.astype(np.float32) - sampled)
+    difference = np.abs(np.subtract(left, sampled, out=sampled, dtype=np.float32), out=sampled)  # uint8 - float32
     if difference.ndim == 3:
         difference = sum(channel_list(difference))
     weight = valid.astype(np.float32)
@@ -63,11 +63,15 @@ def local_residual_scale(residual: np.ndarray, block: int = SCALE_BLOCK_PX) -> n
     if not valid.any():
         raise JaxStereoError("no match to take the photometric residual's scale from")
     rows, cols = -(-h // block), -(-w // block)
-    v, u = np.nonzero(valid)
-    cell = (v // block) * cols + (u // block)
     levels = 1024
-    quantised = np.minimum(np.rint(residual[v, u] * 4), levels - 1).astype(np.int64)
-    histogram = np.bincount(cell * levels + quantised, minlength=rows * cols * levels).reshape(rows * cols, levels)
+    # Each pixel's histogram bin in its square, the pixels without a match in a last bin of their own (dropped):
+    # whole images at a time, no index lists (twice as fast on a 1728x1152 image).
+    quantised = np.fmin(np.rint(residual * 4), levels - 1)  # fmin: NaN (no match) becomes the top level ...
+    quantised[~valid] = levels  # ... and then the extra bin
+    cell = (np.arange(h, dtype=np.int32)[:, None] // block) * cols + np.arange(w, dtype=np.int32)[None, :] // block
+    key = cell * (levels + 1) + quantised.astype(np.int32)
+    histogram = np.bincount(key.ravel(), minlength=rows * cols * (levels + 1)).reshape(rows * cols, levels + 1)
+    histogram = histogram[:, :levels]
     counts = histogram.sum(axis=1)
     medians = np.argmax(np.cumsum(histogram, axis=1) >= (counts[:, None] + 1) / 2, axis=1) / 4.0
     enough = counts >= block * block / 8
