@@ -3,7 +3,7 @@
 import cv2
 import numpy as np
 
-from jaxstereo._stereo import matching
+from jaxstereo._stereo import matching, row_bands
 from jaxstereo._stereo.matching import refine_disparity
 
 H, W = 200, 320
@@ -104,7 +104,7 @@ def test_an_inclined_surface_is_refined_at_each_patch_centre(monkeypatch):
     moved, refined_share = rms()
     assert refined_share > 0.95  # 0.997 measured: the spread about the plane passes the patches
     assert moved < 0.25 * start_rms
-    monkeypatch.setattr(matching, "_energy_centroid", lambda gg, total, box, v: (np.zeros_like(gg), np.zeros_like(gg)))
+    monkeypatch.setattr(matching, "_energy_centroid", lambda gg, total, box, u, v: (np.zeros_like(gg), np.zeros_like(gg)))
     unmoved, _ = rms()
     assert unmoved > 5 * moved
 
@@ -113,7 +113,6 @@ def test_bands_of_rows_on_threads_give_the_whole_images_values(monkeypatch):
     """`refine_disparity` runs on bands of rows (one per core), each extended by two windows' half-widths: the
     result must be the one the whole image gives, bit for bit, whatever the number of bands; with a halo one
     row short of that it is not (the `_disagreement` window reads rows the band's edge reflected)."""
-    from jaxstereo._stereo import row_bands
 
     left, right, start, _ = _bumped_pair(seed=3)
     start[::7, ::5] = np.nan  # unmatched pixels too
@@ -133,6 +132,40 @@ def test_bands_of_rows_on_threads_give_the_whole_images_values(monkeypatch):
     monkeypatch.setattr(matching, "map_row_bands", lambda fn, h, halo, **size: real_map(fn, h, halo - 1, **size))
     short = refine()
     assert not all(np.array_equal(a, b, equal_nan=True) for a, b in zip(whole, short))
+
+
+def test_the_rectangle_around_the_matches_gives_the_whole_images_values(monkeypatch):
+    """Each band is worked on only around its matches (and a halo): the result must be the one the whole band
+    gives, bit for bit, with the pixels outside all NaN, on a pair whose matches leave wide margins unmatched on
+    every side (as the columns left of SGBM's first disparity are), with rows off the rectified ones."""
+    left, right, start, _ = _bumped_pair(seed=5)
+    start[:, :70] = np.nan
+    start[:, 290:] = np.nan
+    start[:40] = np.nan
+    start[165:] = np.nan
+    start[::9, ::4] = np.nan
+    offset = np.random.default_rng(6).uniform(-1.5, 1.5, start.shape).astype(np.float32)
+    monkeypatch.setattr(row_bands, "available_cores", lambda: 1)  # one band: the whole image
+    widths = []
+    real_rows = matching._refine_rows
+
+    def recorded(L, *args, **kwargs):
+        widths.append(L.shape[:2])
+        return real_rows(L, *args, **kwargs)
+
+    monkeypatch.setattr(matching, "_refine_rows", recorded)
+
+    def refine():
+        return refine_disparity(left, right, start, offset, window=31, small_window=15, with_sigma=True)
+
+    cropped = refine()
+    monkeypatch.setattr(matching, "_match_extent", lambda valid, halo: (0, valid.shape[0], 0, valid.shape[1]))
+    whole = refine()
+    for a, b in zip(whole, cropped):
+        np.testing.assert_array_equal(a, b)
+    assert widths[0] == (165 + 30 - (40 - 30), 290 + 30 - (70 - 30))  # the matches' rectangle and a halo of 30 px
+    assert np.isnan(cropped.disparity[~np.isfinite(start)]).all()
+    assert np.isfinite(cropped.disparity[np.isfinite(start)]).all()
 
 
 def test_a_patch_across_the_waterline_keeps_its_value_and_takes_the_larger_std():
