@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .._geometry.errors import JaxStereoError
-from .allocator import keep_arrays_on_small_pages
+from .allocator import keep_arrays_on_small_pages, keep_freed_memory
 from .garbage import collect_garbage_rarely
 from .gil import switch_threads_often
 from .parser import build_parser
@@ -649,6 +649,7 @@ def main(argv=None, *, own_process: bool = False) -> int:
     if own_process and args.command == "reconstruct":
         switch_threads_often()
         keep_arrays_on_small_pages()
+        keep_freed_memory()
     handler = {
         "demo": _cmd_demo,
         "batch": _cmd_batch,
