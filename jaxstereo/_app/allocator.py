@@ -1,5 +1,5 @@
-"""The `jaxstereo reconstruct` command's memory settings: one glibc malloc arena for a repeated command, and
-numpy's arrays on the kernel's small pages.
+"""The `jaxstereo reconstruct` command's memory settings: one glibc malloc arena for a repeated command, numpy's
+arrays on the kernel's small pages, and freed memory kept for the next allocation.
 
 glibc gives each thread that allocates its own arena (up to 8 per core) and hands freed memory at an arena's top
 back to the kernel. A survey allocates image-sized arrays (4-24 MB) on several threads at once (the row bands of

@@ -637,8 +637,9 @@ class _OutlivesItsReader:
 def main(argv=None, *, own_process: bool = False) -> int:
     """Run the command line; returns the exit status. `own_process` (the `jaxstereo` command, `run`): the process
     is the command's alone: its garbage collector runs less often (`garbage.py`), `reconstruct` switches threads
-    more often (`gil.py`) and keeps numpy's arrays on small pages, and a repeated `reconstruct` takes one malloc
-    arena (`allocator.py`)."""
+    more often (`gil.py`), keeps numpy's arrays on small pages and its freed memory for reuse, and a repeated
+    `reconstruct` takes one malloc arena (`allocator.py`). (Its one OpenBLAS thread is set before numpy loads:
+    `command.py`.)"""
     if own_process:
         collect_garbage_rarely()
     parser = build_parser()

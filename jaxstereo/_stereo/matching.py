@@ -234,8 +234,8 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
         if row_offset is not None:
             rows = np.clip(np.rint(rows + np.where(valid_, row_offset[rows_, cols_], 0.0)), 0, h - 1).astype(np.float32)
         above = None if waterline is None else valid_ & (d0 > waterline[rows_, cols_])  # matches above the water
-        fit = _refine_rows(_channels(left[rows_, cols_]), Rimg, gradient, d0, valid_, rows, u[:, cols_], v[rows_], shift,
-                           *settings, above=above)
+        fit = _refine_rows(_channels(left[rows_, cols_]), Rimg, gradient, d0, valid_, rows, u[:, cols_], v[rows_],
+                           shift, *settings, above=above)
         return _embedded(fit, (stop - start, w), extent, subpixel, with_sigma)
 
     # Each result depends on the pixels within two windows' half-widths (a window's sums, then `_disagreement`'s
@@ -409,11 +409,11 @@ def _plane_terms(d0, weight, shift: float, u, v):
 
 def _disparity_plane(terms, window: int, u, v):
     """The plane fitted to the SGBM disparities of each `window` x `window` patch (`terms` from `_plane_terms`,
-    `u` (1, w) the columns and `v` (h, 1) the rows from the image's centre): the patch's number of matched pixels (h, w), the plane's slopes
-    `(d/du, d/dv)` (two (h, w) arrays, px per px), the disparities' standard deviation about it (h, w) px and the
-    plane's disparity at the patch's centre (h, w) px, less the sums' shift, all float32. (The central moments
-    are differences of sums up to 1e9 in float32: about 1e-3 of the coordinates' own, far below what the test
-    and the slopes need.)"""
+    `u` (1, w) the columns and `v` (h, 1) the rows from the image's centre): the patch's number of matched pixels
+    (h, w), the plane's slopes `(d/du, d/dv)` (two (h, w) arrays, px per px), the disparities' standard deviation
+    about it (h, w) px and the plane's disparity at the patch's centre (h, w) px, less the sums' shift, all
+    float32. (The central moments are differences of sums up to 1e9 in float32: about 1e-3 of the coordinates'
+    own, far below what the test and the slopes need.)"""
     box = (window, window)
     n, su, sv, suu, svv, suv, sd, sdu, sdv, sdd = (cv2.boxFilter(a, -1, box, normalize=False) for a in terms)
     m = np.maximum(n, np.float32(1.0))

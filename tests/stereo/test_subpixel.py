@@ -104,7 +104,8 @@ def test_an_inclined_surface_is_refined_at_each_patch_centre(monkeypatch):
     moved, refined_share = rms()
     assert refined_share > 0.95  # 0.997 measured: the spread about the plane passes the patches
     assert moved < 0.25 * start_rms
-    monkeypatch.setattr(matching, "_energy_centroid", lambda gg, total, box, u, v: (np.zeros_like(gg), np.zeros_like(gg)))
+    monkeypatch.setattr(matching, "_energy_centroid",
+                        lambda gg, total, box, u, v: (np.zeros_like(gg), np.zeros_like(gg)))
     unmoved, _ = rms()
     assert unmoved > 5 * moved
 
@@ -146,11 +147,11 @@ def test_the_rectangle_around_the_matches_gives_the_whole_images_values(monkeypa
     start[::9, ::4] = np.nan
     offset = np.random.default_rng(6).uniform(-1.5, 1.5, start.shape).astype(np.float32)
     monkeypatch.setattr(row_bands, "available_cores", lambda: 1)  # one band: the whole image
-    widths = []
+    shapes = []
     real_rows = matching._refine_rows
 
     def recorded(L, *args, **kwargs):
-        widths.append(L.shape[:2])
+        shapes.append(L.shape[:2])
         return real_rows(L, *args, **kwargs)
 
     monkeypatch.setattr(matching, "_refine_rows", recorded)
@@ -163,7 +164,7 @@ def test_the_rectangle_around_the_matches_gives_the_whole_images_values(monkeypa
     whole = refine()
     for a, b in zip(whole, cropped):
         np.testing.assert_array_equal(a, b)
-    assert widths[0] == (165 + 30 - (40 - 30), 290 + 30 - (70 - 30))  # the matches' rectangle and a halo of 30 px
+    assert shapes[0] == (165 + 30 - (40 - 30), 290 + 30 - (70 - 30))  # the matches' rectangle and a halo of 30 px
     assert np.isnan(cropped.disparity[~np.isfinite(start)]).all()
     assert np.isfinite(cropped.disparity[np.isfinite(start)]).all()
 
