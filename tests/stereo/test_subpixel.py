@@ -169,6 +169,34 @@ def test_the_rectangle_around_the_matches_gives_the_whole_images_values(monkeypa
     assert np.isfinite(cropped.disparity[np.isfinite(start)]).all()
 
 
+def test_a_band_without_a_match_gives_nan_and_the_others_their_whole_image_values(monkeypatch):
+    """Three bands of rows, the last one (with its halo) without a single match: it comes back all NaN (no
+    off-surface flag), and the bands with matches give the values one whole-image band does, bit for bit."""
+    left, right, start, _ = _bumped_pair(seed=7)
+    start[100:] = np.nan  # the third band, rows 133-199, and its halo from row 103 hold no match
+    monkeypatch.setattr(row_bands, "MIN_BAND_HALOS", 1)
+    extents = []
+    real_extent = matching._match_extent
+
+    def recorded(valid, halo):
+        extents.append(real_extent(valid, halo))
+        return extents[-1]
+
+    monkeypatch.setattr(matching, "_match_extent", recorded)
+
+    def refine(cores: int):
+        monkeypatch.setattr(row_bands, "available_cores", lambda: cores)
+        return refine_disparity(left, right, start, window=31, small_window=15, with_sigma=True)
+
+    whole, banded = refine(1), refine(3)
+    assert extents.count(None) == 1  # the third band's
+    for a, b in zip(whole, banded):
+        np.testing.assert_array_equal(a, b)
+    assert np.isnan(banded.disparity[100:]).all() and np.isnan(banded.sigma[100:]).all()
+    assert not banded.off_surface[100:].any()
+    assert np.isfinite(banded.disparity[:100]).all()
+
+
 def test_a_patch_across_the_waterline_keeps_its_value_and_takes_the_larger_std():
     """With a waterline through the pair (the matches right of column 160 above the water), the values are the
     ones without it; patches across the line (within 15 px of it) take the larger of their own std and the small
