@@ -345,12 +345,51 @@ def test_profiler_foot_bridges_crevices_and_keeps_holes():
     assert abs(seen[50, 20]) < 1e-12  # the spike removed
 
 
+def test_a_face_edge_one_survey_places_lower_reads_as_that_cells_change_not_the_faces_height():
+    # A block on a 1:2 slope whose seaward face drops 40 mm between two 5 mm cells (steeper than 2:1, so the
+    # profile folds back along the slope and its envelope jumps at the block's edge). The second survey reads
+    # the edge cell `delta` lower. Its envelope's edge moves 0.45 * delta along the slope, and between the two
+    # edges one envelope is on the block's top and the other at its foot: unpaired, that sliver reads as deep as
+    # the face is high. Paired, the change is the edge cell's own: delta * cos(slope) normal to the slope, over
+    # the one segment of the block's top that ends there (the face itself lies under the envelope).
+    origin = (0.1, 0.05)
+    x = np.round(np.arange(0.0, 0.6, 0.005), 6)
+    block = (x >= 0.25) & (x < 0.30)
+    initial = origin[1] + (x - origin[0]) / COT + 0.04 * block
+    cos_slope = COT / np.hypot(COT, 1.0)
+    for delta in (0.001, 0.004, 0.008):
+        final = initial.copy()
+        final[np.flatnonzero(block)[-1]] -= delta
+        paired = profile_damage((x, initial), (x, final), DN50, COT, origin=origin)
+        assert len(paired.erosion) == 1
+        assert paired.d_e == pytest.approx(delta * cos_slope, abs=1e-12)
+        assert paired.A_e == pytest.approx(delta * 0.005 / 2, rel=1e-9)
+        assert paired.L_e == pytest.approx(0.005 / cos_slope, rel=1e-9)  # the top's last segment along the slope
+        unpaired = profile_damage((x, initial), (x, final), DN50, COT, origin=origin, edge_tolerance_m=0.0)
+        assert unpaired.d_e == pytest.approx(0.04 * cos_slope, rel=1e-9)  # the face's height: the sliver
+
+
+def test_a_face_edge_moved_further_than_a_sample_is_measured_whole():
+    # The same block, its last 15 mm of top gone in the second survey: the edges lie three samples apart, are
+    # not one edge, and the eroded corner is measured in full (40 mm deep normal to the slope at the old edge).
+    origin = (0.1, 0.05)
+    x = np.round(np.arange(0.0, 0.6, 0.005), 6)
+    slope = origin[1] + (x - origin[0]) / COT
+    initial = slope + 0.04 * ((x >= 0.25) & (x < 0.30))
+    final = slope + 0.04 * ((x >= 0.25) & (x < 0.285))
+    cos_slope = COT / np.hypot(COT, 1.0)
+    for tolerance in (None, 0.0):
+        dmg = profile_damage((x, initial), (x, final), DN50, COT, origin=origin, edge_tolerance_m=tolerance)
+        assert dmg.d_e == pytest.approx(0.04 * cos_slope, rel=1e-9)
+
+
 def test_overhanging_faces_sampled_apart_add_no_false_erosion():
-    # Rubble seen twice: the same blocks, each with a vertical landward face (which folds the profile back
-    # along the slope), in two surveys whose 5 mm cells fall 2 mm apart. The outer envelopes jump at the
-    # faces' edges in slightly different places; the area between them is a few small slivers, not a
-    # trapezoid bridged from each jump to the next vertex (which gave a per-profile S of 1.56 on a true rubble
-    # surface against itself with 1 mm of noise, and 0.84 on the POV-Ray flume's undamaged model).
+    # Rubble seen twice: the same blocks (faces 14 to 50 mm high), each with a vertical landward face (which
+    # folds the profile back along the slope), in two surveys whose 5 mm cells fall 2 mm apart. The outer
+    # envelopes jump at the faces' edges in slightly different places. The area between them is a few small
+    # slivers, not a trapezoid bridged from each jump to the next vertex (which gave a per-profile S of 1.56 on
+    # a true rubble surface against itself with 1 mm of noise, and 0.84 on the POV-Ray flume's undamaged
+    # model); and each pair of edges is one edge, so no sliver reads as deep as its face.
     origin = (0.1, 0.05)
     rng = np.random.default_rng(3)
     heights = rng.uniform(0.01, 0.06, 12)
@@ -364,11 +403,17 @@ def test_overhanging_faces_sampled_apart_add_no_false_erosion():
     x_initial = np.arange(0.0, 0.7, 0.005)
     x_final = x_initial + 0.002
     initial, final = (x_initial, surface(x_initial)), (x_final, surface(x_final))
-    dmg = profile_damage(initial, final, DN50, COT, origin=origin)
+    unpaired = profile_damage(initial, final, DN50, COT, origin=origin, edge_tolerance_m=0.0)
     area, _ = _dense_envelope_damage(initial, final, COT, origin)
-    eroded = sum(zone.area for zone in dmg.erosion)
+    eroded = sum(zone.area for zone in unpaired.erosion)
     assert abs(eroded - area) < 0.01 * area + 1e-7
-    assert dmg.S < 0.1  # the largest sliver
+    assert unpaired.S < 0.1  # the largest sliver
+    assert max(zone.depth for zone in unpaired.erosion) > 0.014  # a sliver as deep as the lowest face
+    paired = profile_damage(initial, final, DN50, COT, origin=origin)
+    assert sum(zone.area for zone in paired.erosion) < 0.6 * eroded
+    assert paired.S < 0.1
+    # What is left is the faces' sampled segments, 2 mm apart: 3.3 mm at most, against faces 14-50 mm high.
+    assert max(zone.depth for zone in paired.erosion) < 0.004
 
 
 def test_despike_replaces_cells_beyond_all_eight_neighbours_as_a_stack_of_shifts_finds_them():
