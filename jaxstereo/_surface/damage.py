@@ -196,10 +196,9 @@ def _paired_edges(X: np.ndarray, initial: tuple[np.ndarray, np.ndarray], final: 
     candidates = np.stack([after - 1, after], axis=1) if ei.size > 1 else after[:, None]
     nearest = ei[candidates[np.arange(ef.size), np.abs(X[ei[candidates]] - X[ef, None]).argmin(axis=1)]]
     gap = np.abs(X[nearest] - X[ef])
+    close = np.flatnonzero(gap <= tolerance)
     pairs, taken = [], np.zeros(X.size, bool)
-    for k in np.argsort(gap, kind="stable"):
-        if gap[k] > tolerance:
-            break
+    for k in close[np.argsort(gap[close], kind="stable")]:
         k1, k2 = sorted((int(ef[k]), int(nearest[k])))
         if k1 == k2 or taken[k1 : k2 + 1].any():
             continue
