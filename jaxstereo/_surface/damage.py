@@ -216,12 +216,12 @@ def _bridged(X: np.ndarray, D: np.ndarray, pairs: list[tuple[int, int]]) -> np.n
         a, b = 2 * k1, 2 * k2 + 1
         if np.isfinite(D[a]) and np.isfinite(D[b]):
             t = (X[k1 + 1 : k2 + 1] - X[k1]) / (X[k2] - X[k1])
-            inner = np.concatenate([[0.0], np.repeat(t[:-1], 2), [1.0]]) if k2 > k1 else np.zeros(0)
+            inner = np.concatenate([[0.0], np.repeat(t[:-1], 2), [1.0]])
             D[a + 1 : b] = D[a] + inner * (D[b] - D[a])
     return D
 
 
-def sampling_step(X: np.ndarray) -> float:
+def _sampling_step(X: np.ndarray) -> float:
     """The median distance between consecutive abscissae `X` (m): a profile's sampling step along the slope."""
     steps = np.abs(np.diff(X))
     steps = steps[steps > 0]
@@ -252,8 +252,8 @@ def profile_damage(initial: tuple[ArrayLike, ArrayLike], final: tuple[ArrayLike,
     - `edge_tolerance_m`: an edge of the final envelope (where a face that overhangs the slope ends and the
       envelope jumps) within this distance along the slope of one of the initial envelope is one face's edge,
       placed apart by the two surveys: the difference is drawn straight across the two. None: the profiles'
-      sampling step along the slope (the larger of their median vertex spacings), the closest two samples of a
-      face can be; 0: none drawn across.
+      sampling step along the slope (the larger of their median vertex spacings), below which the samples
+      cannot tell two edges from one; 0: none drawn across.
 
     Two surveys of one rock place the edge of its overhanging face a little apart (on a 5 mm DEM a cell's
     height differing by 1 mm moves it 0.45 mm along a 1:2 slope). Between the two edges one envelope is on the
@@ -292,7 +292,7 @@ def profile_damage(initial: tuple[ArrayLike, ArrayLike], final: tuple[ArrayLike,
     # Both envelopes are linear between these abscissae but may jump at them (the edge of an overhanging
     # face): the difference is swept through each abscissa's limit from the left, then from the right.
     (left_i, right_i), (left_f, right_f) = _envelope_sides(runs_i, X), _envelope_sides(runs_f, X)
-    tolerance = (max(sampling_step(Xi), sampling_step(Xf)) if edge_tolerance_m is None
+    tolerance = (max(_sampling_step(Xi), _sampling_step(Xf)) if edge_tolerance_m is None
                  else float(edge_tolerance_m))
     pairs = _paired_edges(X, (left_i, right_i), (left_f, right_f), tolerance)
     D = _bridged(X, np.stack([left_f - left_i, right_f - right_i], axis=1).ravel(), pairs)
