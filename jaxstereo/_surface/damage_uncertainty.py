@@ -24,7 +24,8 @@ rather than linearised: each draw perturbs both DEMs with
   this term acts only on the cells a `seen_tolerance_m` above zero lets through;
 
 and the damage is computed again. Each figure's sigma is the standard deviation over the draws, and its 95 %
-interval the wider of value +- 2 sigma and the middle 95 % of the draws. The draws of a figure need not be
+interval the wider of value +- 2 sigma and the middle 95 % of the draws; a zone's length and depth reach down to
+zero where its size's interval does (`DamageSigma.interval`). The draws of a figure need not be
 Gaussian: where the errors may lift the difference between two pits to zero or not, half-way along an erosion
 zone, some draws split the zone and the others do not, and L_e and A_e come out in two groups. A standard
 deviation understates such a spread: on the POV-Ray flume's stage II hole the central profile's L_e read
@@ -50,6 +51,9 @@ FIGURES = ("A_e_m2", "L_e_m", "d_e_m", "S", "E2D", "S_mean_above_threshold", "S_
            "eroded_volume_m3", "accreted_volume_m3", "E3D")
 PROFILE_FIGURES = ("A_e_m2", "L_e_m", "d_e_m", "S", "E2D")  # each profile's, with a sigma per profile
 DRAWS_MIDDLE = (2.5, 97.5)  # percentiles of the draws that bound a figure's 95 % interval
+# The figures that describe the largest erosion zone's shape, each with the figure of its size: where the size's
+# interval reaches zero, no zone may be there at all, and the shape's interval reaches zero too.
+ZONE_SIZE = {"L_e_m": "A_e_m2", "d_e_m": "A_e_m2", "E2D": "A_e_m2", "L_e_max_m": "S_max", "d_e_max_m": "S_max"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,7 +66,8 @@ class DamageSigma:
     profiles computed in at least half the draws; `draws` the number of draws that computed; `failed` those that
     did not; `shared_calibration` and `shared_level` whether those errors were taken as common to both surveys;
     `spread` and `profile_spread` the same keys -> (low, high), the draws' `DRAWS_MIDDLE` percentiles (see
-    `interval`).
+    `interval`); `values` and `profile_values` the same keys -> the figures measured (empty where not given:
+    then a zone's shape is bounded on its own draws alone, see `interval`).
     """
 
     sigma: dict
@@ -73,6 +78,8 @@ class DamageSigma:
     shared_level: bool
     spread: dict = dataclasses.field(default_factory=dict)
     profile_spread: dict = dataclasses.field(default_factory=dict)
+    values: dict = dataclasses.field(default_factory=dict)
+    profile_values: dict = dataclasses.field(default_factory=dict)
 
     @property
     def profile_S(self) -> dict:
@@ -82,7 +89,13 @@ class DamageSigma:
     def interval(self, key: str, value: float | None, y: float | None = None) -> tuple[float, float] | None:
         """The 95 % interval of a figure (its unit) measured as `value`: the wider of value +- 2 sigma and the
         middle 95 % of the draws, clipped at zero (every damage figure is >= 0). `key` from `FIGURES`, or from
-        `PROFILE_FIGURES` with the profile's `y`. None where the figure or its sigma is not known."""
+        `PROFILE_FIGURES` with the profile's `y`. None where the figure or its sigma is not known.
+
+        A zone's length and depth (`ZONE_SIZE`'s keys) reach down to zero where its size's interval does (the
+        measured size taken from `values` / `profile_values`): if the data allow no erosion there, the zone
+        the sweep found may be the surveys' noise, and its length and depth zero. The draws alone never say
+        so, as every draw's noise makes some zone. On the POV-Ray flume's undamaged model the stretch's
+        largest L_e read 215 mm, [131, 281] on its draws, with the largest S 0.07 [0, 0.68]."""
         if y is None:
             sigma, spread = self.sigma.get(key), self.spread.get(key)
         else:
@@ -90,7 +103,14 @@ class DamageSigma:
             spread = self.profile_spread.get(round(y, 6), {}).get(key)
         if value is None or sigma is None or spread is None:
             return None
-        return max(0.0, min(value - 2 * sigma, spread[0])), max(value + 2 * sigma, spread[1])
+        low, high = max(0.0, min(value - 2 * sigma, spread[0])), max(value + 2 * sigma, spread[1])
+        size = ZONE_SIZE.get(key)
+        measured = (self.values if y is None else self.profile_values.get(round(y, 6), {})).get(size)
+        if size is not None and measured is not None:
+            bounds = self.interval(size, measured, y)
+            if bounds is not None and bounds[0] == 0.0:
+                low = 0.0
+        return low, high
 
     def intervals(self, values: dict, y: float | None = None) -> dict:
         """`interval` of each figure in `values` (name -> value) that has one: name -> [low, high]."""
@@ -233,4 +253,5 @@ def stretch_damage_with_sigma(before: DEM, after: DEM, *args, draws: int = DRAWS
         return result, None
     calibration, level = shares_errors(before, after)
     sigma = damage_sigma(before, after, lambda b, a: stretch_damage(b, a, *args, **kwargs), calibration, level, draws)
-    return result, sigma
+    values, per_profile = _figures(result)
+    return result, dataclasses.replace(sigma, values=values, profile_values=per_profile)

@@ -232,12 +232,16 @@ def test_undamaged_model_dry_against_wet_reports_S_within_its_error_bars(flume):
     # trials, 90 %
     assert np.mean(z <= 2) >= 0.9
     assert z.max() <= 3  # 1.74 measured: S 0.050 +- 0.029 at y = 0.210 m; the largest S, 0.072, has sigma 0.048
-    # Every true d_e is 0 too. Measured: the largest 18.9 mm (E2D 0.53), and each profile's 95 % interval holds 0
-    # at 112 of 115 profiles. While the two surveys' edges of one overhanging face were two edges, the slivers
-    # between them read 110 mm (E2D 3.1), and 89 of 115 intervals held 0.
+    # Every true d_e and L_e is 0 too. Measured: the largest d_e 18.9 mm (E2D 0.53), and each profile's 95 %
+    # intervals of d_e and L_e hold 0 at 115 of 115 profiles, as do the stretch's largest d_e's and L_e's (215 mm,
+    # [0, 281]). While the two surveys' edges of one overhanging face were two edges, the slivers between them read
+    # 110 mm (E2D 3.1), and 89 of 115 d_e intervals held 0; while a zone's length and depth were bounded on their
+    # own draws alone, 112 of 115, and no L_e interval held 0 ([131, 281] mm over the stretch).
     assert report["d_e_max_m"] <= 0.025
-    held = [p["interval_95"]["d_e_m"][0] == 0.0 for p in report["profiles"] if "interval_95" in p]
+    held = [p["interval_95"]["d_e_m"][0] == 0.0 and p["interval_95"]["L_e_m"][0] == 0.0
+            for p in report["profiles"] if "interval_95" in p]
     assert len(held) >= 60 and np.mean(held) >= 0.95
+    assert report["interval_95"]["d_e_max_m"][0] == 0.0 and report["interval_95"]["L_e_max_m"][0] == 0.0
 
 
 def _profiles_near_the_hole(flume, stage: str, out: Path):

@@ -129,6 +129,39 @@ def test_a_zone_the_errors_may_split_gets_an_interval_that_holds_the_split_readi
     assert result.interval("L_e_m", None, y) is None and result.interval("L_e_m", p.L_e, 1.0) is None
 
 
+def test_a_zone_the_data_cannot_tell_from_noise_has_length_and_depth_intervals_down_to_zero():
+    """Two surveys of one slope, the second read with 1 mm of noise per cell: every zone the sweep finds is the
+    noise's (true A_e, L_e and d_e all 0). The length's and depth's intervals reach zero wherever the size's does
+    (each profile's A_e; the stretch's largest S for its largest L_e and d_e). The draws alone keep them off zero,
+    as every draw's noise makes some zone. Through a 30 mm hole the size's interval is clear of zero and the
+    length's is the draws' own."""
+    from jaxstereo._surface.damage_uncertainty import stretch_damage_with_sigma
+
+    layers = {"sigma_match": 0.001, "sigma_calibration": 0.0, "sigma_level": 0.0}
+    before = _slope(**layers)
+    rng = np.random.default_rng(5)
+    noisy = dataclasses.replace(before, z=before.z + rng.normal(0.0, 0.001, before.z.shape))
+    result, sigma = stretch_damage_with_sigma(before, noisy, DN50, COT, SWL, ORIGIN, draws=16, foot_radius_m=0.0)
+    draws_only = dataclasses.replace(sigma, values={}, profile_values={})
+    assert result.L_e_max > 0.02 and sigma.interval("S_max", result.S_max)[0] == 0.0
+    assert draws_only.interval("L_e_max_m", result.L_e_max)[0] > 0.0
+    assert sigma.interval("L_e_max_m", result.L_e_max)[0] == 0.0
+    assert sigma.interval("d_e_max_m", result.d_e_max)[0] == 0.0
+    noise_only = [(y, p) for y, p in result.profiles if sigma.interval("A_e_m2", p.A_e, y)[0] == 0.0]
+    assert len(noise_only) >= 0.9 * len(result.profiles)
+    for y, p in noise_only:
+        assert sigma.interval("L_e_m", p.L_e, y)[0] == 0.0 and sigma.interval("d_e_m", p.d_e, y)[0] == 0.0
+    assert any(draws_only.interval("L_e_m", p.L_e, y)[0] > 0.0 for y, p in noise_only)
+
+    result, sigma = stretch_damage_with_sigma(before, _slope(0.03, **layers), DN50, COT, SWL, ORIGIN, draws=16,
+                                              foot_radius_m=0.0)
+    y, p = min(result.profiles, key=lambda t: abs(t[0]))
+    assert sigma.interval("A_e_m2", p.A_e, y)[0] > 0.5 * p.A_e
+    draws_only = dataclasses.replace(sigma, values={}, profile_values={})
+    assert sigma.interval("L_e_m", p.L_e, y) == draws_only.interval("L_e_m", p.L_e, y)
+    assert sigma.interval("L_e_m", p.L_e, y)[0] > 0.5 * p.L_e
+
+
 def test_surfaces_without_sigma_layers_are_refused_with_a_clear_error():
     with pytest.raises(JaxStereoError, match="no sigma layers"):
         damage_sigma(_slope(), _slope(0.03), _compute, True, True)
