@@ -346,7 +346,7 @@ def test_profiler_foot_bridges_crevices_and_keeps_holes():
 
 
 def test_a_face_edge_one_survey_places_lower_reads_as_that_cells_change_not_the_faces_height():
-    # A block on a 1:2 slope whose seaward face drops 40 mm between two 5 mm cells (steeper than 2:1, so the
+    # A block on a 1:2 slope whose landward face drops 40 mm between two 5 mm cells (steeper than 2:1, so the
     # profile folds back along the slope and its envelope jumps at the block's edge). The second survey reads
     # the edge cell `delta` lower. Its envelope's edge moves 0.45 * delta along the slope, and between the two
     # edges one envelope is on the block's top and the other at its foot: unpaired, that sliver reads as deep as
