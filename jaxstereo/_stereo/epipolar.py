@@ -17,7 +17,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._geometry.camera import Camera
 from .._geometry.interface import Interface
 from .._geometry.refraction import intersect_plane, refract_directions, refraction_points
-from .._geometry.triangulate import triangulate_rays
+from .._geometry.triangulate import closest_points, triangulate_rays
 from .._geometry.vectors import apply3
 from .rectify import Rectification, rectified_rays
 from .table_cache import cached_tables
@@ -51,6 +51,24 @@ def project_exact_rectified(
     return _rectified_pixel(rect, side, jnp.where(below[..., None], bent, straight), camera)
 
 
+def _ray_pairs(rect: Rectification, left: Camera, right: Camera, interface: Interface | None, rl, rr):
+    """The two real rays of each rectified match (`rl`, `rr` (n, 2)): `(air, water, reach)`, with `air` and `water`
+    each `(origin_left, direction_left, origin_right, direction_right)` ((n, 3) each, world metres, unit
+    directions): the rays in air, and refracted at the interface (None without one); `reach` (n,) false where a
+    ray never reaches the water or is totally reflected (None without an interface)."""
+    (o1, d1, _), (o2, d2, _) = (rectified_rays(rect, cam, side, px)
+                                for side, cam, px in ((0, left, rl), (1, right, rr)))
+    if interface is None:
+        return (o1, d1, o2, d2), None, None
+    water = []
+    for o, d in ((o1, d1), (o2, d2)):
+        hit, s = intersect_plane(o, d, interface.normal, interface.level)
+        direction, ok = refract_directions(d, interface.normal, interface.n_air, interface.n_water)
+        water.append((hit, direction, ok & (s > 0) & jnp.isfinite(s)))
+    (a1, b1, ok1), (a2, b2, ok2) = water
+    return (o1, d1, o2, d2), (a1, b1, a2, b2), ok1 & ok2
+
+
 def triangulate_exact(rect: Rectification, left: Camera, right: Camera, interface: Interface | None, rl, rr):
     """Exact triangulation of rectified matches: in air, or refracted where the in-air point is under water.
 
@@ -58,35 +76,42 @@ def triangulate_exact(rect: Rectification, left: Camera, right: Camera, interfac
     (n,) metres, whether each point is under water (n,), and `ok` (n,) false for total internal
     reflection or rays that never reach the water.
     """
-    (o1, d1, s1), (o2, d2, s2) = (rectified_rays(rect, cam, side, px)
-                                  for side, cam, px in ((0, left, rl), (1, right, rr)))
-    p_air, gap_air = triangulate_rays(o1, d1, o2, d2)
+    air, water, reach = _ray_pairs(rect, left, right, interface, rl, rr)
+    p_air, gap_air = triangulate_rays(*air)
     if interface is None:
         return p_air, gap_air, jnp.zeros(gap_air.shape, bool), jnp.ones(gap_air.shape, bool)
-    water = []
-    for o, d in ((o1, d1), (o2, d2)):
-        hit, s = intersect_plane(o, d, interface.normal, interface.level)
-        direction, ok = refract_directions(d, interface.normal, interface.n_air, interface.n_water)
-        water.append((hit, direction, ok & (s > 0) & jnp.isfinite(s)))
-    (a1, b1, ok1), (a2, b2, ok2) = water
-    p_water, gap_water = triangulate_rays(a1, b1, a2, b2)
+    p_water, gap_water = triangulate_rays(*water)
     submerged = interface.height_of(p_air) < 0
     points = jnp.where(submerged[..., None], p_water, p_air)
     gap = jnp.where(submerged, gap_water, gap_air)
-    return points, gap, submerged, ~submerged | (ok1 & ok2)
+    return points, gap, submerged, ~submerged | reach
 
 
 @jax.jit
 def exact_row_offset(rect: Rectification, left: Camera, right: Camera, interface: Interface | None, rl, rr):
     """Where a rectified match's exact point lands in the right rectified image.
 
+    The left pixel is the reference: the match's exact point lies on its ray (refracted where the match is under
+    water, as `triangulate_exact` decides), at the point of that ray nearest the right pixel's ray, and is
+    projected exactly into the right rectified image. (The midpoint of the two rays, projected, lands halfway
+    between the rectified row and the exact curve: the offsets came out half the true ones, against the exact
+    projection of points into both cameras.)
+
     **Arguments:** rectified left pixels `rl` (n, 2) and their matches `rr` (n, 2) on the same row.
 
     **Returns:** `(offset,)`: the exact right pixel's row minus the left row (n,) pixels; zero for an exact
     rectification.
     """
-    points, _, _, _ = triangulate_exact(rect, left, right, interface, rl, rr)
-    return (project_exact_rectified(rect, right, 1, interface, points)[:, 1] - rl[:, 1],)
+    row = rl[:, 1]
+    for _ in range(2):  # the second pass from the right pixel on the curve: the nearest point is then the exact one
+        air, water, _ = _ray_pairs(rect, left, right, interface, rl, rr)
+        points, _, _ = closest_points(*air)
+        if interface is not None:
+            submerged = interface.height_of(triangulate_rays(*air)[0]) < 0
+            points = jnp.where(submerged[..., None], closest_points(*water)[0], points)
+        row = project_exact_rectified(rect, right, 1, interface, points)[:, 1]
+        rr = jnp.stack([rr[:, 0], row], axis=-1)
+    return (row - rl[:, 1],)
 
 
 def disparity_bounds(rect: Rectification, left: Camera, right: Camera, interface: Interface | None,
