@@ -51,22 +51,17 @@ def project_exact_rectified(
     return _rectified_pixel(rect, side, jnp.where(below[..., None], bent, straight), camera)
 
 
-def _ray_pairs(rect: Rectification, left: Camera, right: Camera, interface: Interface | None, rl, rr):
-    """The two real rays of each rectified match (`rl`, `rr` (n, 2)): `(air, water, reach)`, with `air` and `water`
-    each `(origin_left, direction_left, origin_right, direction_right)` ((n, 3) each, world metres, unit
-    directions): the rays in air, and refracted at the interface (None without one); `reach` (n,) false where a
-    ray never reaches the water or is totally reflected (None without an interface)."""
-    (o1, d1, _), (o2, d2, _) = (rectified_rays(rect, cam, side, px)
-                                for side, cam, px in ((0, left, rl), (1, right, rr)))
+def _rays(rect: Rectification, camera: Camera, side: int, interface: Interface | None, pixels):
+    """The real rays of rectified `pixels` (n, 2) of one side: `(air, water, reach)`, with `air` and `water` each
+    `(origin, direction)` ((n, 3) each, world metres, unit directions): the ray in air, and refracted at the
+    interface (None without one); `reach` (n,) false where the ray never reaches the water or is totally reflected
+    (None without an interface)."""
+    origin, direction, _ = rectified_rays(rect, camera, side, pixels)
     if interface is None:
-        return (o1, d1, o2, d2), None, None
-    water = []
-    for o, d in ((o1, d1), (o2, d2)):
-        hit, s = intersect_plane(o, d, interface.normal, interface.level)
-        direction, ok = refract_directions(d, interface.normal, interface.n_air, interface.n_water)
-        water.append((hit, direction, ok & (s > 0) & jnp.isfinite(s)))
-    (a1, b1, ok1), (a2, b2, ok2) = water
-    return (o1, d1, o2, d2), (a1, b1, a2, b2), ok1 & ok2
+        return (origin, direction), None, None
+    hit, s = intersect_plane(origin, direction, interface.normal, interface.level)
+    bent, ok = refract_directions(direction, interface.normal, interface.n_air, interface.n_water)
+    return (origin, direction), (hit, bent), ok & (s > 0) & jnp.isfinite(s)
 
 
 def triangulate_exact(rect: Rectification, left: Camera, right: Camera, interface: Interface | None, rl, rr):
@@ -76,15 +71,16 @@ def triangulate_exact(rect: Rectification, left: Camera, right: Camera, interfac
     (n,) metres, whether each point is under water (n,), and `ok` (n,) false for total internal
     reflection or rays that never reach the water.
     """
-    air, water, reach = _ray_pairs(rect, left, right, interface, rl, rr)
-    p_air, gap_air = triangulate_rays(*air)
+    (air_l, water_l, reach_l), (air_r, water_r, reach_r) = (_rays(rect, cam, side, interface, px)
+                                                            for side, cam, px in ((0, left, rl), (1, right, rr)))
+    p_air, gap_air = triangulate_rays(*air_l, *air_r)
     if interface is None:
         return p_air, gap_air, jnp.zeros(gap_air.shape, bool), jnp.ones(gap_air.shape, bool)
-    p_water, gap_water = triangulate_rays(*water)
+    p_water, gap_water = triangulate_rays(*water_l, *water_r)
     submerged = interface.height_of(p_air) < 0
     points = jnp.where(submerged[..., None], p_water, p_air)
     gap = jnp.where(submerged, gap_water, gap_air)
-    return points, gap, submerged, ~submerged | reach
+    return points, gap, submerged, ~submerged | (reach_l & reach_r)
 
 
 @jax.jit
@@ -102,13 +98,14 @@ def exact_row_offset(rect: Rectification, left: Camera, right: Camera, interface
     **Returns:** `(offset,)`: the exact right pixel's row minus the left row (n,) pixels; zero for an exact
     rectification.
     """
+    air_l, water_l, _ = _rays(rect, left, 0, interface, rl)
     row = rl[:, 1]
     for _ in range(2):  # the second pass from the right pixel on the curve: the nearest point is then the exact one
-        air, water, _ = _ray_pairs(rect, left, right, interface, rl, rr)
-        points, _, _ = closest_points(*air)
+        air_r, water_r, _ = _rays(rect, right, 1, interface, rr)
+        points, _, _ = closest_points(*air_l, *air_r)
         if interface is not None:
-            submerged = interface.height_of(triangulate_rays(*air)[0]) < 0
-            points = jnp.where(submerged[..., None], closest_points(*water)[0], points)
+            submerged = interface.height_of(triangulate_rays(*air_l, *air_r)[0]) < 0
+            points = jnp.where(submerged[..., None], closest_points(*water_l, *water_r)[0], points)
         row = project_exact_rectified(rect, right, 1, interface, points)[:, 1]
         rr = jnp.stack([rr[:, 0], row], axis=-1)
     return (row - rl[:, 1],)
