@@ -37,30 +37,50 @@ def _true_rig(truth):
     return Rig(cams[0], cams[1], None, {})
 
 
-def _true_disparity(rect, rig, gt, stage, shape):
-    """True disparities (rows every `ROW_STEP`, w) of the rectified left image; NaN where the ray leaves the
-    truth grid or the right camera does not see the point."""
+def _truth_surface(gt, stage):
+    """The true surface of `stage` as a function of points (n, 3) -> heights (n,) metres (bilinear on the 1 mm
+    grid), and the grid's x, y extent `(x0, x1, y0, y1)`."""
     height, x0, y0 = gt[stage].astype(np.float64), float(gt["x"][0]), float(gt["y"][0])
     res = float(gt["x"][1] - gt["x"][0])
 
     def surface(p):
         return ndimage.map_coordinates(height, [(p[:, 1] - y0) / res, (p[:, 0] - x0) / res], order=1, mode="nearest")
 
+    return surface, (x0, float(gt["x"][-1]), y0, float(gt["y"][-1]))
+
+
+def _first_hits(surface, at, n):
+    """Where `n` rays, each a path `at(z)` (n, 3) parametrised by height, first reach `surface`: marched down through
+    the rubble 1 mm of height a step, the crossing interpolated linearly. Returns the heights (n,), NaN for none."""
+    hit, previous = np.full(n, np.nan), None
+    for z in np.arange(0.36, -0.002, -0.001):
+        gap = z - surface(at(np.full(n, z)))
+        if previous is not None:
+            cross = np.isnan(hit) & (gap <= 0) & (previous[1] > 0)
+            hit[cross] = previous[0] + (z - previous[0]) * previous[1][cross] / (previous[1][cross] - gap[cross])
+        previous = (z, gap)
+    return hit
+
+
+def _inside(point, extent):
+    x0, x1, y0, y1 = extent
+    return (point[:, 0] > x0) & (point[:, 0] < x1) & (point[:, 1] > y0) & (point[:, 1] < y1)
+
+
+def _true_disparity(rect, rig, gt, stage, shape):
+    """True disparities (rows every `ROW_STEP`, w) of the rectified left image; NaN where the ray leaves the
+    truth grid or the right camera does not see the point."""
+    surface, extent = _truth_surface(gt, stage)
     v, u = np.mgrid[0 : shape[0] : ROW_STEP, 0 : shape[1]]
     pixels = np.stack([u.ravel(), v.ravel()], -1).astype(np.float64)
     origin, direction, _ = (np.asarray(a) for a in rectified_rays(rect, rig.left, 0, pixels))
-    hit, previous = np.full(len(pixels), np.nan), None
-    for z in np.arange(0.36, -0.002, -0.001):  # down through the rubble, 1 mm of height a step
-        t = (z - origin[:, 2]) / direction[:, 2]
-        above = origin[:, 2] + t * direction[:, 2] - surface(origin + t[:, None] * direction)
-        if previous is not None:
-            cross = np.isnan(hit) & (above <= 0) & (previous[1] > 0)
-            f = previous[1][cross] / (previous[1][cross] - above[cross])
-            hit[cross] = previous[0][cross] + f * (t[cross] - previous[0][cross])
-        previous = (t, above)
-    point = origin + np.nan_to_num(hit)[:, None] * direction
-    inside = ((point[:, 0] > x0) & (point[:, 0] < gt["x"][-1]) & (point[:, 1] > y0) & (point[:, 1] < gt["y"][-1]))
-    seen = np.isfinite(hit) & inside
+
+    def at(z):
+        return origin + ((z - origin[:, 2]) / direction[:, 2])[:, None] * direction
+
+    hit = _first_hits(surface, at, len(pixels))
+    point = at(np.nan_to_num(hit))
+    seen = np.isfinite(hit) & _inside(point, extent)
     right_centre = np.asarray(rect.centers)[1]
     for f in np.linspace(0.01, 0.25, 60):  # the segment to the right camera stays above the surface
         q = point + f * (right_centre - point)
@@ -103,12 +123,8 @@ def _true_wet_disparity(rect, rig, interface, gt, stage, shape):
     surface, and the point is projected exactly into the right camera (`project_refracted`) and into its rectified
     image; NaN where the ray leaves the truth grid or the right camera does not see the point (its light path,
     bent at the water, passes below the surface)."""
-    height, x0, y0 = gt[stage].astype(np.float64), float(gt["x"][0]), float(gt["y"][0])
-    res, level = float(gt["x"][1] - gt["x"][0]), float(interface.level)
-
-    def surface(p):
-        return ndimage.map_coordinates(height, [(p[:, 1] - y0) / res, (p[:, 0] - x0) / res], order=1, mode="nearest")
-
+    surface, extent = _truth_surface(gt, stage)
+    level = float(interface.level)
     v, u = np.mgrid[0 : shape[0] : ROW_STEP, 0 : shape[1]]
     pixels = np.stack([u.ravel(), v.ravel()], -1).astype(np.float64)
     origin, direction, entry = (np.asarray(a) for a in rectified_rays(rect, rig.left, 0, pixels))
@@ -119,16 +135,9 @@ def _true_wet_disparity(rect, rig, interface, gt, stage, shape):
         t = np.where(above, (z - origin[:, 2]) / direction[:, 2], (z - entry[:, 2]) / bent[:, 2])
         return np.where(above[:, None], origin + t[:, None] * direction, entry + t[:, None] * bent)
 
-    hit, previous = np.full(len(pixels), np.nan), None
-    for z in np.arange(0.36, -0.002, -0.001):  # down through the rubble, 1 mm of height a step
-        gap = z - surface(at(np.full(len(pixels), z)))
-        if previous is not None:
-            cross = np.isnan(hit) & (gap <= 0) & (previous[1] > 0)
-            hit[cross] = previous[0] + (z - previous[0]) * previous[1][cross] / (previous[1][cross] - gap[cross])
-        previous = (z, gap)
+    hit = _first_hits(surface, at, len(pixels))
     point = at(np.nan_to_num(hit, nan=level))
-    inside = (point[:, 0] > x0) & (point[:, 0] < gt["x"][-1]) & (point[:, 1] > y0) & (point[:, 1] < gt["y"][-1])
-    seen = np.isfinite(hit) & inside
+    seen = np.isfinite(hit) & _inside(point, extent)
     centre = np.asarray(rig.right.center)
     under = point[:, 2] < level
     crossing = np.where(under[:, None], np.asarray(refraction_points(centre, point, interface)), point)
