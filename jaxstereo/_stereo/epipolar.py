@@ -99,12 +99,11 @@ def exact_row_offset(rect: Rectification, left: Camera, right: Camera, interface
     rectification.
     """
     air_l, water_l, _ = _rays(rect, left, 0, interface, rl)
-    row = rl[:, 1]
     for _ in range(2):  # the second pass from the right pixel on the curve: the nearest point is then the exact one
         air_r, water_r, _ = _rays(rect, right, 1, interface, rr)
-        points, _, _ = closest_points(*air_l, *air_r)
-        if interface is not None:
-            submerged = interface.height_of(triangulate_rays(*air_l, *air_r)[0]) < 0
+        points, on_right, _ = closest_points(*air_l, *air_r)
+        if interface is not None:  # under water as `triangulate_exact` decides: by the in-air rays' midpoint
+            submerged = interface.height_of(0.5 * (points + on_right)) < 0
             points = jnp.where(submerged[..., None], closest_points(*water_l, *water_r)[0], points)
         row = project_exact_rectified(rect, right, 1, interface, points)[:, 1]
         rr = jnp.stack([rr[:, 0], row], axis=-1)
