@@ -131,23 +131,53 @@ def despike(dem: DEM, tolerance_m: float) -> DEM:
     return DEM(dem.x, dem.y, np.where(peak, high, np.where(pit, low, z)), dem.spacing)
 
 
+FOOT_STEPS_PER_RADIUS = 3  # the ball is closed on a grid with at least this many steps along its radius
+
+
 def profiler_foot(dem: DEM, radius_m: float) -> DEM:
     """The surface as a profiler's ball foot of radius `radius_m` sees it: single-cell spikes removed
     (`despike`), then a grey closing with that ball, which bridges crevices narrower than the foot
-    between armour units (NaN cells stay NaN and do not pull their neighbours down)."""
-    r = int(np.floor(radius_m / dem.spacing))
-    if r < 1:
+    between armour units (NaN cells stay NaN and do not pull their neighbours down).
+
+    The closing runs on the DEM's bilinear surface sampled at least `FOOT_STEPS_PER_RADIUS` times along the
+    radius, and is read back at the cells' centres. On the cells themselves a ball of Dn50 / 4 on a 5 mm DEM is
+    three heights (9, 7.5 and 5.6 mm) that sink between them into pits the ball cannot enter. On the POV-Ray
+    flume's true stage I and III surfaces, as 5 mm DEMs of cell medians, `stretch_damage`'s 25 profiles within
+    60 mm of the hole then put `d_e` 3.9 mm RMS off the one the ball gives on the true 1 mm surfaces (`A_e`
+    5.2 % RMS); closed on 2.5 mm steps, 3.3 mm (`A_e` 3.1 %). From the wet surveys, over all 115 profiles,
+    `d_e` 6.1 -> 5.5 mm RMS.
+    """
+    if radius_m <= 0 or np.floor(radius_m / dem.spacing) < 1:
         return dem
     dem = despike(dem, radius_m)
-    yy, xx = np.mgrid[-r : r + 1, -r : r + 1] * dem.spacing
+    factor = int(np.ceil(FOOT_STEPS_PER_RADIUS * dem.spacing / radius_m))
+    z = _refined(dem.z, factor)
+    step = dem.spacing / factor
+    r = int(np.floor(radius_m / step))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1] * step
     inside = xx**2 + yy**2 <= radius_m**2
     ball = np.where(inside, np.sqrt(np.clip(radius_m**2 - xx**2 - yy**2, 0.0, None)), 0.0)
-    missing = ~np.isfinite(dem.z)
+    missing = ~np.isfinite(z)
     big = 1e6
-    raised = ndimage.grey_dilation(np.where(missing, -big, dem.z), footprint=inside, structure=ball)
+    raised = ndimage.grey_dilation(np.where(missing, -big, z), footprint=inside, structure=ball)
     raised = np.where(raised < -big / 2, big, raised)
-    closed = ndimage.grey_erosion(raised, footprint=inside, structure=ball)
-    return DEM(dem.x, dem.y, np.where(missing, np.nan, closed), dem.spacing)
+    closed = ndimage.grey_erosion(raised, footprint=inside, structure=ball)[::factor, ::factor]
+    return DEM(dem.x, dem.y, np.where(np.isfinite(dem.z), closed, np.nan), dem.spacing)
+
+
+def _refined(z: np.ndarray, factor: int) -> np.ndarray:
+    """The bilinear surface through the cells' heights `z` (ny, nx) sampled `factor` times finer, on
+    ((ny - 1) factor + 1, (nx - 1) factor + 1) points; every `factor`-th is a cell's centre. NaN wherever a cell
+    that weighs in is NaN."""
+    if factor == 1:
+        return z
+    for axis in (0, 1):
+        z = np.moveaxis(z, axis, 0)
+        t = (np.arange(1, factor) / factor)[None, :, None]
+        between = (1 - t) * z[:-1, None] + t * z[1:, None]  # (n - 1, factor - 1, m)
+        fine = np.concatenate([z[:-1, None], between], axis=1).reshape(-1, z.shape[1])
+        z = np.moveaxis(np.concatenate([fine, z[-1:]]), 0, axis)
+    return z
 
 
 def _column_mean(z: np.ndarray) -> np.ndarray:
