@@ -363,8 +363,8 @@ def test_profiler_foot_on_a_coarse_dem_matches_the_ball_on_the_fine_surface():
         (cx, cy), (a, b), turn = rng.uniform(0, 0.3, 2), rng.uniform(0.012, 0.022, 2), rng.uniform(0, np.pi)
         u = ((X - cx) * np.cos(turn) + (Y - cy) * np.sin(turn)) / a
         v = (-(X - cx) * np.sin(turn) + (Y - cy) * np.cos(turn)) / b
-        on = u**2 + v**2 < 1
-        z = np.maximum(z, rng.uniform(0.01, 0.025) * np.sqrt(np.clip(1 - u**2 - v**2, 0, None)) + rng.uniform(0, 0.01) * on)
+        dome = np.sqrt(np.clip(1 - u**2 - v**2, 0, None))
+        z = np.maximum(z, rng.uniform(0.01, 0.025) * dome + rng.uniform(0, 0.01) * (u**2 + v**2 < 1))
     r = 9
     yy, xx = np.mgrid[-r : r + 1, -r : r + 1] * 0.001
     inside = xx**2 + yy**2 <= radius**2
