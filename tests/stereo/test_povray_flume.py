@@ -297,13 +297,15 @@ def test_a_zone_the_surveys_join_across_an_unmoved_rock_has_an_interval_that_hol
     """Stage II against stage I, both wet. Two pits with an unmoved rock between them: the truth is at zero over
     about 20 mm there and keeps the pits apart (the central profile's L_e 70 mm), the surveys read that rock 3-7 mm
     lower after than before and join them (144 mm, 1.5 sigma away). Some draws of the surveys' errors split the
-    zone: the 95 % interval of every profile within 25 mm of the hole's centre holds the true A_e and L_e, and of
-    all but two the true d_e.
+    zone: of the 95 % intervals of the profiles within 25 mm of the hole's centre (A_e, L_e and d_e each) all but
+    two hold the truth, at most one of them an A_e's or an L_e's.
 
-    Those two lie 1-4 mm (in y) from a step of the true d_e (48 -> 67 mm at y 0.274 m, 59 -> 41 mm at 0.298 m) and
-    read 60 and 41 mm against 68 and 59 ([53, 66] and [33, 55] mm). Their intervals held the truth while the faces'
-    edges, placed apart by the two surveys, read as slivers as deep as the faces: the draws then ranged from 18 to
-    76 mm and from 6 to 144 mm, intervals that said nothing."""
+    The two lie 1-4 mm (in y) from a step of the true d_e (48 -> 67 mm at y 0.274 m, 59 -> 41 mm at 0.298 m). With
+    the profiler's foot closed on the cells themselves both were d_e's, 60 and 41 mm against 68 and 59 ([53, 66] and
+    [33, 55] mm); closed on the DEM's bilinear surface, the first (60 against 68 mm, [53, 66]) and the A_e at 0.295 m,
+    2.89 cm2 against 3.45 ([2.28, 3.34]). Their intervals held the truth while the faces' edges, placed apart by the
+    two surveys, read as slivers as deep as the faces: the draws then ranged from 18 to 76 mm and from 6 to 144 mm,
+    intervals that said nothing."""
     out = _damage(flume, "bw_I_wet", "bw_II_wet", "damage_stage_II")
     near = _profiles_near_the_hole(flume, "II", out)
     outside = []
@@ -316,7 +318,7 @@ def test_a_zone_the_surveys_join_across_an_unmoved_rock_has_an_interval_that_hol
     assert len(near) >= 9
     # Measured: 28 of 30 held; the central profile's L_e 143.5 +- 50.2 mm against 69.7 (174.4 +- 52.6 with the
     # patches judged about their mean, not their plane: outside 2 sigma).
-    assert not [o for o in outside if o[1] != "d_e_m"], outside
+    assert len([o for o in outside if o[1] != "d_e_m"]) <= 1, outside
     assert len(outside) <= 2, outside
 
 

@@ -345,17 +345,19 @@ def test_profiler_foot_bridges_crevices_and_keeps_holes():
     assert abs(seen[50, 20]) < 1e-12  # the spike removed
 
 
-def test_profiler_foot_on_a_coarse_dem_matches_the_ball_on_the_fine_surface():
+@pytest.mark.parametrize(("cell_mm", "rms_mm", "p95_mm"), [(5, 0.9, 2.0), (10, 1.6, 4.0)])
+def test_profiler_foot_on_a_coarse_dem_matches_the_ball_on_the_fine_surface(cell_mm, rms_mm, p95_mm):
     # Rubble of ellipsoidal rocks (Dn about 36 mm) on a 1 mm grid, closed there with the 9 mm ball (the reference),
-    # and its 5 mm DEM of cell medians closed by `profiler_foot`: the two agree per cell (the reference's cell
-    # medians) to 0.75 mm RMS. On the DEM's own cells the ball is three heights (9, 7.5, 5.6 mm) and sinks
-    # between them: 1.20 mm RMS, 2.37 mm p95.
+    # and its DEM of cell medians closed by `profiler_foot`: the two agree per cell (the reference's cell medians)
+    # to 0.75 mm RMS on 5 mm cells. On the DEM's own cells the ball is three heights (9, 7.5, 5.6 mm) and sinks
+    # between them: 1.20 mm RMS, 2.37 mm p95. On 10 mm cells, coarser than the ball's radius, it was not closed at
+    # all (3.3 mm RMS off); now 1.3 mm.
     from scipy import ndimage
 
     from jaxstereo._surface.damage_report import profiler_foot
 
     rng = np.random.default_rng(3)
-    n, k, radius = 300, 5, 0.009
+    n, k, radius = 300, cell_mm, 0.009
     x = np.arange(n) * 0.001
     X, Y = np.meshgrid(x, x)
     z = np.zeros((n, n))
@@ -375,10 +377,11 @@ def test_profiler_foot_on_a_coarse_dem_matches_the_ball_on_the_fine_surface():
         return np.median(a.reshape(n // k, k, n // k, k).transpose(0, 2, 1, 3).reshape(n // k, n // k, -1), axis=-1)
 
     centres = x.reshape(-1, k).mean(axis=1)
-    seen = profiler_foot(DEM(centres, centres, cells(z), 0.005), radius).z[4:-4, 4:-4]  # away from the borders
-    error = seen - cells(reference)[4:-4, 4:-4]
-    assert np.sqrt(np.mean(error**2)) < 0.0009
-    assert np.percentile(np.abs(error), 95) < 0.002
+    inner = slice(20 // k, -20 // k)  # away from the borders
+    seen = profiler_foot(DEM(centres, centres, cells(z), k / 1000), radius).z[inner, inner]
+    error = seen - cells(reference)[inner, inner]
+    assert np.sqrt(np.mean(error**2)) < rms_mm / 1000
+    assert np.percentile(np.abs(error), 95) < p95_mm / 1000
 
 
 def test_a_face_edge_one_survey_places_lower_reads_as_that_cells_change_not_the_faces_height():
