@@ -452,8 +452,8 @@ def _cmd_refine(args) -> int:
                         floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points)
     _print_refinement(result, refine, control, points)
     if not result.converged:
-        raise JaxStereoError(f"the bundle adjustment {result.result} after {result.steps} steps: no rig written "
-                             "(check the level guess, the control and the correspondences)")
+        raise JaxStereoError(f"the bundle adjustment did not converge (its solves: {', '.join(result.outcomes)}): "
+                             "no rig written (check the level guess, the control and the correspondences)")
     if "water" in refine and not result.level_determined:
         result = _keep_guess_or_refuse(args, result)
     save_rig(result.rig, args.output)

@@ -71,8 +71,21 @@ def _dry_dem(scene, shift_x=0.0):
     return grid_median(nodes, 0.005)
 
 
-def test_level_and_pose_from_a_dry_dem_of_the_parts_that_did_not_move(flume):
-    """The wet images show the model after a test (a hole at the SWL); the control is the dry DEM before it."""
+def test_level_and_pose_from_a_dry_dem_of_the_parts_that_did_not_move(flume, monkeypatch):
+    """The wet images show the model after a test (a hole at the SWL); the control is the dry DEM before it.
+
+    The solves with the level held at the guess only place the start: here the first of them is made to report
+    its step limit (as it did on the POV-Ray flume seen by its cameras turned 180 degrees), and the converged
+    refinement after it still counts as converged and determined."""
+    from jaxstereo._stereo import refine as module
+
+    start = module._start_at_the_guessed_level
+
+    def start_that_stops(*args):
+        theta, outcomes = start(*args)
+        return theta, ["stopped at its step limit"] + outcomes[1:]
+
+    monkeypatch.setattr(module, "_start_at_the_guessed_level", start_that_stops)
     spec, scene, left, right = flume
     wet = build_scene(dataclasses.replace(spec, damage=Damage(half_length_dn50=3.0, half_width_dn50=4.0, swl_m=LEVEL)))
     pl, pr, _ = surface_correspondences(wet.heightfield, left, right, js.Interface(LEVEL), 1500, 0.1)
@@ -82,6 +95,8 @@ def test_level_and_pose_from_a_dry_dem_of_the_parts_that_did_not_move(flume):
     level, std = result.parameters["water level (m)"]
     angle = np.rad2deg(np.linalg.norm(np.asarray(js.so3_log(np.asarray(result.rig.right.pose.R) @ np.asarray(right.pose.R).T))))
     assert abs(level - LEVEL) <= 1e-3 and result.level_determined and std < 5e-4
+    assert result.converged and result.outcomes == ("converged",) * 3
+    assert result.rig.calibration["refine"]["start_solves"][0] == "stopped at its step limit"
     assert angle <= 0.02
     assert np.linalg.norm(np.asarray(result.rig.right.center) - np.asarray(right.center)) <= 5e-4
     assert result.rms_after_px <= 0.3
