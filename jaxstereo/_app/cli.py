@@ -362,7 +362,8 @@ def _cmd_damage(args) -> int:
     width = "whole surveyed width" if result.whole_width else "tested stretch"
     print(f"damage: Dn50 {args.dn50:g} m, slope 1:{cot:g}, SWL {args.swl:g} m, {len(result.profiles)} profiles")
     print(f"  {width:<18} y {result.stretch[0]:.3f} to {result.stretch[1]:.3f} m")
-    print(f"  active zone        z {result.active_zone[0]:.3f} to {result.active_zone[1]:.3f} m on the design slope")
+    print(f"  active zone        z {result.active_zone[0]:.3f} to {result.active_zone[1]:.3f} m on the design slope, "
+          f"which rises toward {result.rises_toward}")
     if np.isfinite(result.seen_tolerance):
         print(f"  seen by both       {100 * result.carried:.1f} % of the cells, not seen wholly by one survey, take "
               "the change of the cells around them that both saw wholly")

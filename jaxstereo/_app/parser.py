@@ -175,7 +175,8 @@ def _add_damage(sub) -> None:
     p.add_argument("before", help="survey or DEM .npz before the test")
     p.add_argument("after", help="survey or DEM .npz after the test")
     p.add_argument("--dn50", type=float, required=True, help="nominal diameter of the armour units, m")
-    p.add_argument("--slope", required=True, help="design slope: cotangent (2) or V:H (1:2)")
+    p.add_argument("--slope", required=True, help="design slope: cotangent (2) or V:H (1:2); it may rise toward +x "
+                   "or -x (the initial survey says which)")
     p.add_argument("--swl", type=float, required=True, help="still water level, m (world Z)")
     p.add_argument("--slope-origin", type=float, nargs=2, metavar=("X", "Z"),
                    help="a point of the design slope line (its toe, say), m")

@@ -20,6 +20,7 @@ from .damage import DemDamage, ProfileDamage, damage_level, dem_damage, profile_
 from .grid import DEM
 from .nan_median import nan_median
 from .seen_change import SEEN_TOLERANCE_M, change_where_seen
+from .slope_direction import DIRECTIONS, mirrored_in_x, slope_direction
 
 if TYPE_CHECKING:
     from .damage_uncertainty import DamageSigma
@@ -40,7 +41,8 @@ class StretchDamage:
     surveyed width); `active_zone` (z_low, z_high) metres: the heights on the design slope between which
     erosion is counted; the design slope (`cot`, `origin`), `dn50`, `swl`; `seen_tolerance` (m) and `carried`:
     the share of the compared cells (0-1) where one survey did not see the surface wholly and the change was
-    carried from the cells around it that both saw (see `seen_change.py`).
+    carried from the cells around it that both saw (see `seen_change.py`); `rises_toward` the direction along x in
+    which the design slope rises ("+x" or "-x", see `slope_direction`).
     """
 
     profiles: list[tuple[float, ProfileDamage]]
@@ -62,6 +64,7 @@ class StretchDamage:
     active_zone: tuple[float, float]
     seen_tolerance: float = float("inf")
     carried: float = 0.0
+    rises_toward: str = "+x"
 
     @property
     def S_max_y(self) -> float:
@@ -71,7 +74,7 @@ class StretchDamage:
     def to_dict(self) -> dict:
         return {
             "dn50_m": self.dn50, "slope_cot": self.cot, "swl_m": self.swl,
-            "design_slope_origin_xz_m": list(self.origin),
+            "design_slope_origin_xz_m": list(self.origin), "slope_rises_toward": self.rises_toward,
             "stretch_y_m": list(self.stretch), "whole_surveyed_width": self.whole_width,
             "active_zone_z_m": list(self.active_zone),
             "change_carried_from_seen_cells": {
@@ -103,16 +106,19 @@ def _zone_dict(zone) -> dict:
 
 
 def fit_design_slope(x: np.ndarray, z: np.ndarray, cot: float, swl: float, dn50: float) -> tuple[tuple[float, float], float]:
-    """The design slope line `z = (x - x0) / cot` fitted (median) to a profile's points within 3 Dn50 of the
-    still water level. **Returns:** `((x0, 0), rms)`: a point of the line and the RMS distance (m) of those
-    points from it, normal to the slope."""
+    """The design slope line `z = (x - x0) / cot`, or `z = (x0 - x) / cot` (a slope rising toward -x), whichever
+    fits the better, fitted (median) to a profile's points within 3 Dn50 of the still water level. **Returns:**
+    `((x0, 0), rms)`: a point of the line and the RMS distance (m) of those points from it, normal to the slope."""
     ok = np.isfinite(z) & (np.abs(z - swl) <= 3 * dn50)
     if ok.sum() < 3:
         raise JaxStereoError("the initial profile has too few points near the still water level to fit the "
                              "design slope; give its origin instead")
-    x0 = float(np.median(x[ok] - cot * z[ok]))
-    normal = (z[ok] - (x[ok] - x0) / cot) * cot / np.hypot(cot, 1.0)
-    return (x0, 0.0), float(np.sqrt(np.mean(normal**2)))
+    fits = []
+    for run in (cot, -cot):  # x per metre of rise
+        x0 = float(np.median(x[ok] - run * z[ok]))
+        normal = (z[ok] - (x[ok] - x0) / run) * cot / np.hypot(cot, 1.0)
+        fits.append(((x0, 0.0), float(np.sqrt(np.mean(normal**2)))))
+    return min(fits, key=lambda fit: fit[1])
 
 
 def despike(dem: DEM, tolerance_m: float) -> DEM:
@@ -270,7 +276,8 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
                    profile_spacing_m: float | None = None, threshold: float = 0.5,
                    stretch: tuple[float, float] | None = None,
                    active_zone_dn50: tuple[float, float] = ACTIVE_ZONE_DN50,
-                   foot_radius_m: float | None = None, seen_tolerance_m: float | None = None) -> StretchDamage:
+                   foot_radius_m: float | None = None, seen_tolerance_m: float | None = None,
+                   rises_toward: str | None = None) -> StretchDamage:
     """Damage of a tested stretch between two DEMs on one grid (x cross-shore, y along the breakwater).
 
     **Arguments:** the DEMs; `dn50` (m); `cot` the design slope's cotangent; `swl` still water level (m); `origin`
@@ -282,7 +289,9 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
     surfaces are seen with (default Dn50 / 4; 0: the raw DEMs), see `profiler_foot`; `seen_tolerance_m`: a cell
     whose coverage std (`sigma_coverage`, metres) exceeds it in either survey takes the change of the cells around
     it that both saw wholly (default 0: any cell not seen wholly; `math.inf`: every cell compared as surveyed), see
-    `seen_change.py`.
+    `seen_change.py`; `rises_toward` "+x" or "-x", the direction along x in which the design slope rises (None:
+    the one the initial DEM follows, see `slope_direction`; a slope rising toward -x is computed on the DEMs
+    mirrored in x, and the result given back in the DEMs' own frame).
 
     The characteristic S is that of the profile averaged over the stretch (de Almeida, van Gent and
     Hofland 2019); its damage level uses the thresholds of this slope. A cross-section that cannot be
@@ -296,6 +305,18 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
     below, above = (float(v) for v in active_zone_dn50)
     if below < 0 or above < 0 or below + above <= 0:
         raise JaxStereoError(f"the active zone must extend below and/or above the SWL, got {active_zone_dn50} Dn50")
+    if rises_toward is not None and rises_toward not in DIRECTIONS:
+        raise JaxStereoError(f"rises_toward must be one of {', '.join(DIRECTIONS)} (or None), got {rises_toward!r}")
+    direction = rises_toward or slope_direction(before, cot, swl, origin, dn50)
+    if direction == "-x":
+        result = stretch_damage(mirrored_in_x(before), mirrored_in_x(after), dn50, cot, swl, (-origin[0], origin[1]),
+                                profile_spacing_m, threshold=threshold, stretch=stretch,
+                                active_zone_dn50=active_zone_dn50, foot_radius_m=foot_radius_m,
+                                seen_tolerance_m=seen_tolerance_m, rises_toward="+x")
+        xy = result.volumes.E3D_xy
+        volumes = dataclasses.replace(result.volumes, E3D_xy=None if xy is None else (-xy[0], xy[1]))
+        return dataclasses.replace(result, origin=(float(origin[0]), float(origin[1])), volumes=volumes,
+                                   rises_toward="-x")
     tolerance = SEEN_TOLERANCE_M if seen_tolerance_m is None else float(seen_tolerance_m)
     after, carried = change_where_seen(before, after, tolerance, dn50)
     foot = dn50 / 4 if foot_radius_m is None else float(foot_radius_m)
@@ -434,13 +455,15 @@ def _plot_averaged_profile(result: StretchDamage, before: DEM, after: DEM, path:
             ax.fill_between(before.x, z - 2 * band, z + 2 * band, color=colour, alpha=0.15, lw=0,
                             label="2 sigma" if dem is before else None)
     x0, z0 = result.origin
-    zone_x = [x0 + (z - z0) * result.cot for z in result.active_zone]
+    run = result.cot if result.rises_toward == "+x" else -result.cot  # x per metre of rise along the design slope
+    zone_x = sorted(x0 + (z - z0) * run for z in result.active_zone)
     ax.axvspan(*zone_x, color="0.85", zorder=0,
                label=f"active zone (z {result.active_zone[0]:.3f} to {result.active_zone[1]:.3f} m)")
     ax.fill_between(before.x, za, zb, where=za < zb, color="tab:red", alpha=0.3, label="eroded")
     ax.fill_between(before.x, za, zb, where=za > zb, color="tab:blue", alpha=0.3, label="accreted")
     xs = np.array([before.x[0], before.x[-1]])
-    ax.plot(xs, z0 + (xs - x0) / result.cot, ls="--", color="0.6", lw=0.8, label=f"design slope 1:{result.cot:g}")
+    ax.plot(xs, z0 + (xs - x0) / run, ls="--", color="0.6", lw=0.8,
+            label=f"design slope 1:{result.cot:g}, rising toward {result.rises_toward}")
     ax.axhline(result.swl, color="tab:blue", lw=0.8, ls=":", label="SWL")
     ax.set_ylim(np.nanmin(zb) - 0.05, np.nanmax(zb) + 0.05)
     ax.set_xlabel("x (m)")

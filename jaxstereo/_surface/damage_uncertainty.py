@@ -245,12 +245,14 @@ def shares_errors(before: DEM, after: DEM) -> tuple[bool, bool]:
 def stretch_damage_with_sigma(before: DEM, after: DEM, *args, draws: int = DRAWS, **kwargs
                               ) -> tuple[StretchDamage, DamageSigma | None]:
     """`stretch_damage(before, after, *args, **kwargs)` and, when both DEMs carry sigma layers, its figures'
-    standard deviations (`damage_sigma`; None otherwise)."""
+    standard deviations (`damage_sigma`; None otherwise). The draws keep the direction in which the design slope
+    rises as the result found it."""
     from .damage_report import stretch_damage
 
     result = stretch_damage(before, after, *args, **kwargs)
     if not (before.has_sigma and after.has_sigma):
         return result, None
+    kwargs = {**kwargs, "rises_toward": result.rises_toward}
     calibration, level = shares_errors(before, after)
     sigma = damage_sigma(before, after, lambda b, a: stretch_damage(b, a, *args, **kwargs), calibration, level, draws)
     values, per_profile = _figures(result)

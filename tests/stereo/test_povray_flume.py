@@ -340,3 +340,29 @@ def test_the_hole_counts_whole_with_the_swl_given_higher_or_lower(flume, swl_off
     assert moved["y_m"] == at_level["y_m"] and at_level["A_e_m2"] > 0.007  # the truth: 0.0076 m2
     for key in ("A_e_m2", "L_e_m", "d_e_m"):
         assert moved[key] == pytest.approx(at_level[key], rel=1e-9), key
+
+
+def test_damage_of_the_true_surfaces_is_the_same_in_a_frame_running_down_the_slope():
+    """A rig whose cameras are turned 180 degrees about their axes sees the origin board the other way round: its
+    world frame's x runs down the slope (the development flume's oblique rig's frame is turned so). The stage III
+    damage of the true surfaces (5 mm cells), measured in that frame (x and y negated), is the same, profile by
+    profile, and so is the slope's direction, found from the initial surface: with the frame's x down the slope the
+    command refused ("no cross-section of the initial survey follows the design slope")."""
+    from jaxstereo import DEM, stretch_damage
+
+    truth = json.loads((DATA / "truth.json").read_text())
+    bw, level = truth["breakwater"], truth["scenes"]["bw_I_wet"]["water_level"]
+    g = np.load(DATA / "breakwater_gt.npz")
+    x, y = g["x"][::5], g["y"][::5]
+    surfaces = [DEM(x, y, g[k][::5, ::5].astype(float), float(x[1] - x[0])) for k in ("I", "III")]
+    turned = [DEM(-x[::-1], -y[::-1], s.z[::-1, ::-1], s.spacing) for s in surfaces]
+    found = stretch_damage(*surfaces, bw["dn50"], bw["slope"], level, (bw["toe"], 0.0), 0.005)
+    other = stretch_damage(*turned, bw["dn50"], bw["slope"], level, (-bw["toe"], 0.0), 0.005)
+    assert (found.rises_toward, other.rises_toward) == ("+x", "-x")
+    by_y = {round(-yy, 4): p for yy, p in other.profiles}
+    pairs = [(p, by_y[round(yy, 4)]) for yy, p in found.profiles if round(yy, 4) in by_y]
+    assert len(pairs) >= 0.9 * len(found.profiles) and max(p.S for p, _ in pairs) > 5
+    assert [q.A_e for _, q in pairs] == pytest.approx([p.A_e for p, _ in pairs], rel=1e-9, abs=1e-12)
+    assert [q.d_e for _, q in pairs] == pytest.approx([p.d_e for p, _ in pairs], rel=1e-9, abs=1e-12)
+    assert other.volumes.E3D == pytest.approx(found.volumes.E3D, rel=1e-9)
+    assert np.allclose(other.volumes.E3D_xy, np.negative(found.volumes.E3D_xy))

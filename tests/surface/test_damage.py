@@ -473,3 +473,35 @@ def test_despike_replaces_cells_beyond_all_eight_neighbours_as_a_stack_of_shifts
     assert peak.sum() > 5 and pit.sum() > 5
     got = despike(DEM(np.arange(50.0), np.arange(40.0), z, 1.0), 0.01).z
     np.testing.assert_array_equal(got, np.where(peak, high, np.where(pit, low, z)))
+
+
+def test_a_slope_rising_toward_minus_x_is_found_and_measured_as_its_mirror_image():
+    """The world frame may run down the slope (a rig turned 180 degrees sees the origin board the other way
+    round): the initial DEM says which way the slope rises, and the damage is that of the mirrored DEMs, with the
+    E3D place given back in the DEMs' own frame. The design line fitted to a profile finds its direction too."""
+    from jaxstereo._surface.damage_report import fit_design_slope, stretch_damage
+    from jaxstereo._surface.slope_direction import mirrored_in_x, slope_direction
+
+    before, after = _dems(lambda Y: np.abs(Y) < 0.1)
+    toe = (-0.3, -0.3 / COT)  # a point of the line z = x / cot
+    mirrored = [mirrored_in_x(d) for d in (before, after)]
+    assert np.array_equal(mirrored[0].x, -before.x[::-1]) and np.array_equal(mirrored[1].z, after.z[:, ::-1])
+    assert slope_direction(before, COT, 0.0, toe, DN50) == "+x"
+    assert slope_direction(mirrored[0], COT, 0.0, (0.3, toe[1]), DN50) == "-x"
+    assert slope_direction(before, COT, 0.0, (5.0, 0.0), DN50) == "+x"  # no line meets the DEM: the default
+    reference = stretch_damage(before, after, DN50, COT, 0.0, toe, foot_radius_m=0.0)
+    result = stretch_damage(*mirrored, DN50, COT, 0.0, (0.3, toe[1]), foot_radius_m=0.0)
+    assert reference.rises_toward == "+x" and result.rises_toward == "-x"
+    assert result.to_dict()["slope_rises_toward"] == "-x" and result.origin == (0.3, toe[1])
+    assert [p.A_e for _, p in result.profiles] == pytest.approx([p.A_e for _, p in reference.profiles], rel=1e-9)
+    assert [p.d_e for _, p in result.profiles] == pytest.approx([p.d_e for _, p in reference.profiles], rel=1e-9)
+    assert result.averaged.S == pytest.approx(reference.averaged.S, rel=1e-9) and reference.d_e_max > 0.02
+    assert result.volumes.E3D_xy == pytest.approx((-reference.volumes.E3D_xy[0], reference.volumes.E3D_xy[1]))
+    # Told the wrong way, the slope is not found: said, not measured.
+    with pytest.raises(js.JaxStereoError, match="design slope"):
+        stretch_damage(*mirrored, DN50, COT, 0.0, (0.3, toe[1]), foot_radius_m=0.0, rises_toward="+x")
+    with pytest.raises(js.JaxStereoError, match="rises_toward"):
+        stretch_damage(before, after, DN50, COT, 0.0, toe, rises_toward="up")
+    for dem, x0 in ((before, 0.0), (mirrored[0], 0.0)):
+        (x_fit, _), rms = fit_design_slope(dem.x, dem.z[0], COT, 0.0, DN50)
+        assert x_fit == pytest.approx(x0, abs=1e-9) and rms < 1e-9
