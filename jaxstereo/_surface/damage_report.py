@@ -19,7 +19,7 @@ from .._geometry.types import PathLike, Vector2
 from .damage import DemDamage, ProfileDamage, damage_level, dem_damage, profile_damage, slope_abscissa, to_slope_frame
 from .grid import DEM
 from .nan_median import nan_median
-from .seen_change import SEEN_TOLERANCE_M, change_where_seen
+from .seen_change import SEEN_TOLERANCE_M, change_where_seen, on_common_cells
 from .slope_direction import DIRECTIONS, mirrored_in_x, slope_direction
 
 if TYPE_CHECKING:
@@ -319,6 +319,7 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
                                    rises_toward="-x")
     tolerance = SEEN_TOLERANCE_M if seen_tolerance_m is None else float(seen_tolerance_m)
     after, carried = change_where_seen(before, after, tolerance, dn50)
+    before, after = on_common_cells(before, after)  # a cell one survey lacks has no change to measure
     foot = dn50 / 4 if foot_radius_m is None else float(foot_radius_m)
     before, after = profiler_foot(before, foot), profiler_foot(after, foot)
     x_swl = slope_abscissa(swl, cot, origin)

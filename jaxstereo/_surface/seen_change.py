@@ -66,3 +66,17 @@ def change_where_seen(before: DEM, after: DEM, tolerance_m: float, reach_m: floa
     z = after.z.copy()
     z[row, col] = before.z[row, col] + estimate
     return dataclasses.replace(after, z=z), carried
+
+
+def on_common_cells(before: DEM, after: DEM) -> tuple[DEM, DEM]:
+    """The two DEMs (one grid, (ny, nx), metres) with their heights emptied (NaN) wherever either is empty.
+
+    A cell that only one survey holds has no change to measure, and a profile drawn through it would compare that
+    survey's height with the other's bridged across the gap: at the foot of a rock's face, a crevice's floor in
+    one against a line from the floor to the rock's top in the other. On the POV-Ray flume seen by its rig turned
+    180 degrees, one such cell per section gave the undamaged model (dry survey against wet) a profile S of 0.31
+    (grey rock: 0.36); compared on their common cells, 0.09 (0.14), and nothing else the scorecard reads moved.
+    """
+    both = np.isfinite(before.z) & np.isfinite(after.z)
+    return (dataclasses.replace(before, z=np.where(both, before.z, np.nan)),
+            dataclasses.replace(after, z=np.where(both, after.z, np.nan)))

@@ -505,3 +505,31 @@ def test_a_slope_rising_toward_minus_x_is_found_and_measured_as_its_mirror_image
     for dem, x0 in ((before, 0.0), (mirrored[0], 0.0)):
         (x_fit, _), rms = fit_design_slope(dem.x, dem.z[0], COT, 0.0, DN50)
         assert x_fit == pytest.approx(x0, abs=1e-9) and rms < 1e-9
+
+
+def test_a_cell_only_one_survey_saw_is_not_compared_with_the_other_bridged_across_it():
+    """An unchanged rubble slope surveyed twice: the first survey missed the floor cell at the foot of each block's
+    seaward face (a crevice it did not see), the second saw it. Compared as they were, the first survey's profile
+    bridges the missing cell from the crevice's floor up to the block's top, the second drops to the floor, and
+    the difference reads as erosion (on the POV-Ray flume seen by its rig turned 180 degrees, such a cell gave
+    the undamaged model a profile S of 0.31). The damage compares the cells both surveys have: none here."""
+    from jaxstereo._surface.damage_report import stretch_damage
+
+    spacing = 0.005
+    x = np.round(np.arange(-0.3, 0.5, spacing), 6)
+    y = np.round(np.arange(-0.2, 0.2, spacing), 6)
+    X, _ = np.meshgrid(x, y)
+    heights = np.random.default_rng(5).uniform(0.02, 0.06, 40)
+    block = np.floor((X + 0.3) / 0.04).astype(int)
+    on_block = (X + 0.3) % 0.04 < 0.03 - 1e-9
+    z = X / COT + np.where(on_block, heights[block], 0.0)
+    foot = ~on_block & np.roll(on_block, -1, axis=1)  # the last floor cell before each block
+    seen_once = DEM(x, y, np.where(foot, np.nan, z), spacing)
+    seen_twice = DEM(x, y, z, spacing)
+    result = stretch_damage(seen_once, seen_twice, DN50, COT, 0.0, (0.0, 0.0), profile_spacing_m=spacing)
+    assert len(result.profiles) > 50 and result.S_max == 0.0 and result.averaged.S == 0.0
+    assert result.volumes.eroded_m3 == 0.0 and result.volumes.accreted_m3 == 0.0
+    # Each profile alone, its missing cells bridged, reads the crevices as erosion.
+    row = int(np.argmin(np.abs(y)))
+    alone = profile_damage((x, seen_once.z[row]), (x, z[row]), DN50, COT, (0.0, 0.0))
+    assert alone.S > 0.1 and alone.d_e > 0.005
