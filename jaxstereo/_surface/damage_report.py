@@ -293,6 +293,7 @@ def stretch_damage(before: DEM, after: DEM, dn50: float, cot: float, swl: float,
     the one the initial DEM follows, see `slope_direction`; a slope rising toward -x is computed on the DEMs
     mirrored in x, and the result given back in the DEMs' own frame).
 
+    The two DEMs are compared on the cells both hold (`on_common_cells`): a cell one survey lacks has no change.
     The characteristic S is that of the profile averaged over the stretch (de Almeida, van Gent and
     Hofland 2019); its damage level uses the thresholds of this slope. A cross-section that cannot be
     computed is listed with its reason; none at all is an error.
