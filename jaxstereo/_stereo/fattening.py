@@ -7,6 +7,11 @@ depth step lies on an edge of the image (the rock's outline), while a carried-ov
 texture, with the outline a few pixels further into the foreground's side. The pixels between the two
 have the foreground's disparity and the background's colour; they are dropped (not re-matched: the
 background is the part the data does not determine).
+
+Where the foreground hides part of the background from the right camera (an occlusion: the strip left of a
+rock or of a hole's upslope wall in the left image), the carried-over disparity lies beyond the occluded strip,
+which the two-way check empties: no step, no outline, but a ramp of the background's matches rising toward the
+foreground's disparity (`beside_occlusions`).
 """
 
 from __future__ import annotations
@@ -113,4 +118,36 @@ def _along_rows(pixels, disparity, reach, step, gap, ratio):
     for start, stop in zip(starts, stops):
         np.add.at(flagged, (start[:, 0], start[:, 1]), 1)
         np.add.at(flagged, (start[:, 0], np.minimum(stop + 1, w)), -1)
+    return (np.cumsum(flagged, axis=1, dtype=np.int32)[:, :w] > 0) & found
+
+
+def beside_occlusions(disparity: np.ndarray, reach_px: int = 12, step_px: float = 1.5) -> np.ndarray:
+    """The matched pixels (h, w) bool within `reach_px` pixels on the background's side of an occluded strip.
+
+    In the left image the background just left of a foreground (larger disparity on the right) is hidden from
+    the right camera; the two-way check leaves that strip unmatched. SGBM's cost aggregation carries the
+    foreground's disparity over the strip into the background's first pixels beyond it, as a ramp that the
+    images alike share: on the POV-Ray flume's stage III hole the floor's matches within about 12 px of its
+    upslope wall's occluded strip read 3-12 mm too high, and the damage's depth normal to the slope is measured
+    there. A strip is an unmatched run of a row between two matches whose disparity rises by more than `step_px`
+    across it (left to right); the `reach_px` matched pixels left of it are flagged.
+
+    **Arguments:** `disparity` (h, w) pixels of the left rectified image, NaN for no match (`x_right = x_left -
+    d`); `reach_px` (0: flag none) and `step_px` pixels.
+    """
+    h, w = disparity.shape
+    if reach_px <= 0 or w < 3:
+        return np.zeros((h, w), bool)
+    found = np.isfinite(disparity)
+    columns = np.arange(w, dtype=np.int32)[None, :]
+    previous = np.full((h, w), -1, np.int32)  # the previous matched column of each pixel's row
+    previous[:, 1:] = np.maximum.accumulate(np.where(found, columns, np.int32(-1)), axis=1)[:, :-1]
+    before = np.take_along_axis(disparity, np.maximum(previous, 0), axis=1)
+    with np.errstate(invalid="ignore"):
+        rising = found & (previous >= 0) & (columns - previous > 1) & (disparity - before > step_px)
+    v, b = np.nonzero(rising)
+    a = previous[v, b]  # the last match left of the strip: the band runs from a - reach_px + 1 to a
+    flagged = np.zeros((h, w + 1), np.int32)
+    np.add.at(flagged, (v, np.maximum(a - reach_px + 1, 0)), 1)
+    np.add.at(flagged, (v, a + 1), -1)
     return (np.cumsum(flagged, axis=1, dtype=np.int32)[:, :w] > 0) & found

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxstereo._stereo.fattening import drop_fattened
+from jaxstereo._stereo.fattening import beside_occlusions, drop_fattened
 
 H, W, EDGE = 30, 80, 50  # the foreground (a bright block) starts at column EDGE
 
@@ -40,3 +40,30 @@ def test_a_step_on_the_edge_or_beyond_reach_and_gaps_are_left_alone():
     disparity[:, EDGE - 10 : EDGE - 4] = np.nan  # unmatched pixels between the background and the band
     assert not drop_fattened(image, disparity, gap_px=4).any()
     assert drop_fattened(image, disparity, gap_px=6).sum() == H * 4
+
+
+def _occluded_row(rise: float, gap: int = 5) -> np.ndarray:
+    """One row (1, W): background disparity 10 up to column EDGE - gap, an unmatched strip of `gap` pixels, then a
+    foreground `rise` pixels higher."""
+    row = np.full((1, W), 10.0, np.float32)
+    row[:, EDGE - gap : EDGE] = np.nan
+    row[:, EDGE:] += rise
+    return row
+
+
+def test_the_matches_left_of_an_occluded_strip_are_flagged_and_nothing_else():
+    flagged = beside_occlusions(_occluded_row(5.0), reach_px=12)
+    expected = np.zeros((1, W), bool)
+    expected[:, EDGE - 5 - 12 : EDGE - 5] = True  # the 12 matched pixels left of the strip
+    np.testing.assert_array_equal(flagged, expected)
+    # a strip whose disparity falls left to right (the right camera sees the lower side) or rises by less than
+    # the step: nothing
+    assert not beside_occlusions(_occluded_row(5.0)[:, ::-1], reach_px=12).any()
+    assert not beside_occlusions(_occluded_row(1.0), reach_px=12).any()
+    # no strip, a step between neighbours (fattening's case), or the filter off: nothing
+    assert not beside_occlusions(_occluded_row(5.0, gap=0), reach_px=12).any()
+    assert not beside_occlusions(_occluded_row(5.0), reach_px=0).any()
+    # a strip near the row's start flags what there is; unmatched pixels stay unflagged
+    row = _occluded_row(5.0)
+    row[:, : EDGE - 10] = np.nan
+    np.testing.assert_array_equal(np.flatnonzero(beside_occlusions(row, reach_px=12)), np.arange(EDGE - 10, EDGE - 5))
