@@ -118,8 +118,14 @@ def _sgbm(pair, options):
     return rect_l, rect_r, sgbm
 
 
-def test_refinement_sharpens_correct_matches_and_leaves_none(x64, dry_pair):
-    rect_l, rect_r, sgbm = _sgbm(dry_pair, ReconstructOptions())
+@pytest.fixture(scope="module")
+def dry_match(dry_pair):
+    """`dry_pair` rectified and matched as `reconstruct` does: the rectified images and SGBM's disparities."""
+    return _sgbm(dry_pair, ReconstructOptions())
+
+
+def test_refinement_sharpens_correct_matches_and_leaves_none(x64, dry_pair, dry_match):
+    rect_l, rect_r, sgbm = dry_match
     refined = refine_disparity(rect_l, rect_r, sgbm, None, sigma_window=5).disparity
     true = dry_pair[-1]
     assert np.isfinite(true).mean() > 0.5  # the scene is there: 67 % of the pixels seen by both cameras
@@ -133,12 +139,12 @@ def test_refinement_sharpens_correct_matches_and_leaves_none(x64, dry_pair):
     assert rest_refined <= 0.8 * rest_sgbm  # 0.170 px against 0.238 px measured
 
 
-def test_matches_beside_an_occluded_strip_are_off_more_often_and_are_dropped(x64, dry_pair):
+def test_matches_beside_an_occluded_strip_are_off_more_often_and_are_dropped(x64, dry_pair, dry_match):
     """SGBM carries a rock's disparity over the strip beside it that the right camera cannot see: the matches
     `beside_occlusions` flags (within 12 px of such a strip) are off by more than 1 px four times as often as the
     others, and dropping them lowers the share of matches off by more than 1 px over the whole pair."""
     _, _, kept = _sgbm(dry_pair, ReconstructOptions(match=MatchOptions(occlusion_reach_px=0)))
-    _, _, dropped = _sgbm(dry_pair, ReconstructOptions())
+    dropped = dry_match[2]
     true = dry_pair[-1]
     band = beside_occlusions(kept, 12)[::ROW_STEP]
     error = np.abs(kept[::ROW_STEP] - true)
