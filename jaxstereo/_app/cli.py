@@ -343,9 +343,9 @@ def _cmd_damage(args) -> int:
     after = load_surface(args.after, spacing, before.x, before.y, max_gap_m=args.max_gap)
     if not np.any(np.isfinite(before.z) & np.isfinite(after.z)):
         raise JaxStereoError(f"{args.before!r} and {args.after!r} do not overlap: are they in the same world frame?")
-    origin = _design_slope_origin(args, cot, before)
+    origin, rises_toward = _design_slope_line(args, cot, before)
     result, sigma = stretch_damage_with_sigma(
-        before, after, args.dn50, cot, args.swl, origin, args.profile_spacing,
+        before, after, args.dn50, cot, args.swl, origin, args.profile_spacing, rises_toward=rises_toward,
         stretch=tuple(args.stretch) if args.stretch else None,
         active_zone_dn50=tuple(args.active_zone) if args.active_zone else ACTIVE_ZONE_DN50,
         seen_tolerance_m=args.seen_tolerance)
@@ -391,16 +391,21 @@ def _cmd_damage(args) -> int:
     return 0
 
 
-def _design_slope_origin(args, cot: float, before) -> tuple[float, float]:
-    """The design slope line's point from --slope-origin, --slope-points or (on request) --fit-slope."""
+def _design_slope_line(args, cot: float, before) -> tuple[tuple[float, float], str | None]:
+    """The design slope line from --slope-origin, --slope-points or (on request) --fit-slope: `(origin,
+    rises_toward)`, a point (x, z) of the line, metres, and the direction along x in which it rises ("+x" or
+    "-x") where the arguments say it (--slope-points, in the order of their heights), else None: the initial
+    survey says it (`slope_direction`). Two points that rise the other way than the initial survey are taken as
+    given, with a warning."""
     from .._surface.damage_report import _column_mean, fit_design_slope
+    from .._surface.slope_direction import slope_direction
 
     given = [name for name in ("slope_origin", "slope_points", "fit_slope") if getattr(args, name)]
     if len(given) != 1:
         raise JaxStereoError("place the design slope with exactly one of --slope-origin X Z (its toe, say), "
                              "--slope-points X1 Z1 X2 Z2 or --fit-slope" + (f" (got {len(given)})" if given else ""))
     if args.slope_origin:
-        return tuple(args.slope_origin)
+        return tuple(args.slope_origin), None
     if args.slope_points:
         x1, z1, x2, z2 = args.slope_points
         if x2 == x1 or (z2 - z1) == 0:
@@ -408,14 +413,19 @@ def _design_slope_origin(args, cot: float, before) -> tuple[float, float]:
         cot_points = abs((x2 - x1) / (z2 - z1))
         if abs(cot_points - cot) > 0.05 * cot:
             raise JaxStereoError(f"--slope-points give a slope of 1:{cot_points:.2f} but --slope is 1:{cot:g}")
-        return (x1, z1)
+        rises_toward = "+x" if (z2 - z1) * (x2 - x1) > 0 else "-x"
+        surveyed = slope_direction(before, cot, args.swl, (x1, z1), args.dn50)
+        if surveyed != rises_toward:
+            print(f"  WARNING: --slope-points rise toward {rises_toward}, but the initial survey follows a slope rising "
+                  f"toward {surveyed} through them: the points are taken as given (check their coordinates)")
+        return (x1, z1), rises_toward
     origin, rms = fit_design_slope(before.x, _column_mean(before.z), cot, args.swl, args.dn50)
     print(f"design slope fitted to the initial survey near the SWL: x0 {origin[0]:.4f} m at z 0, RMS "
           f"{1e3 * rms:.1f} mm normal to the slope")
     if rms > 0.5 * args.dn50:
         print(f"  WARNING: the initial survey departs from a 1:{cot:g} line by {1e3 * rms:.0f} mm RMS near the SWL: "
               "is --slope right? Prefer --slope-origin.")
-    return origin
+    return origin, None
 
 
 def _read_control_points(path):

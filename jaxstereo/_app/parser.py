@@ -181,7 +181,8 @@ def _add_damage(sub) -> None:
     p.add_argument("--slope-origin", type=float, nargs=2, metavar=("X", "Z"),
                    help="a point of the design slope line (its toe, say), m")
     p.add_argument("--slope-points", type=float, nargs=4, metavar=("X1", "Z1", "X2", "Z2"),
-                   help="two points of the design slope line, m (checked against --slope)")
+                   help="two points of the design slope line, m (checked against --slope; the slope rises from the lower "
+                        "to the higher)")
     p.add_argument("--fit-slope", action="store_true",
                    help="fit the design slope line to the initial survey near the SWL (its fit error is printed)")
     p.add_argument("--stretch", type=float, nargs=2, metavar=("Y0", "Y1"),

@@ -72,6 +72,44 @@ def test_grid_and_damage_commands(surveys, tmp_path, capsys):
         assert (tmp_path / "report" / name).stat().st_size > 0
 
 
+def test_slope_points_set_the_direction_the_slope_rises(surveys, tmp_path, capsys):
+    """--slope-points say which way the slope rises (the order of their heights): on the fixture's model mirrored
+    in x (rising toward -x) the damage is the unmirrored model's; points that rise the other way than the initial
+    survey are taken as given, with a warning."""
+    rng = np.random.default_rng(1)
+    mirrored = {}
+    for name, hole in (("before", False), ("after", True)):
+        cloud = _slope_cloud(rng, hole=hole)
+        cloud[:, 0] *= -1.0
+        mirrored[name] = tmp_path / f"{name}_mirrored.npz"
+        _survey(mirrored[name], cloud)
+    common = ["--dn50", "0.036", "--slope", "1:2", "--swl", "0.158", "--profile-spacing", "0.036"]
+
+    def damage(before, after, line, name):
+        assert main(["damage", str(before), str(after), *common, *line, "-o", str(tmp_path / name)]) == 0
+        return json.loads((tmp_path / name / "damage.json").read_text()), capsys.readouterr().out
+
+    straight, _ = damage(surveys / "before.npz", surveys / "after.npz", ["--slope-origin", "-0.3", "0.0"], "straight")
+    down, out = damage(mirrored["before"], mirrored["after"], ["--slope-points", "0.3", "0.0", "-0.3", "0.3"], "down")
+    assert "WARNING" not in out
+    assert (straight["slope_rises_toward"], down["slope_rises_toward"]) == ("+x", "-x")
+    a, b = straight["averaged_profile"], down["averaged_profile"]
+    assert a["A_e_m2"] > 0 and abs(b["A_e_m2"] - a["A_e_m2"]) < 0.05 * a["A_e_m2"]
+    assert abs(b["d_e_m"] - a["d_e_m"]) < 1e-3
+    # the same points listed from the top: the same line, the same direction
+    top_first, _ = damage(mirrored["before"], mirrored["after"], ["--slope-points", "-0.3", "0.3", "0.3", "0.0"],
+                          "top_first")
+    assert top_first["slope_rises_toward"] == "-x" and top_first["averaged_profile"] == pytest.approx(b, rel=1e-9)
+    # points rising toward +x through the mirrored model: taken as given, said to contradict the survey, and the
+    # line then lies on no cross-section of it: refused, nothing written
+    code = main(["damage", str(mirrored["before"]), str(mirrored["after"]), *common,
+                 "--slope-points", "0.3", "0.0", "0.9", "0.3", "-o", str(tmp_path / "against")])
+    captured = capsys.readouterr()
+    assert "WARNING: --slope-points rise toward +x, but the initial survey follows a slope rising toward -x" in captured.out
+    assert code == 2 and "no cross-section of the initial survey follows the design slope" in captured.err
+    assert not (tmp_path / "against").exists()
+
+
 def _error(capsys, code, text):
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and text in err, err
