@@ -20,3 +20,37 @@ def test_incidence_limit_experiment_and_readme_update(tmp_path):
     update_readme(tmp_path, readme)
     text = readme.read_text()
     assert "STALE-TABLE" not in text and "| 0.3 | 0.405 |" in text and text.endswith("after\n")
+
+
+def test_resampled_flume_moves_pixels_as_its_camera_matrix_says(tmp_path):
+    """`scaled_rig_data`: a blob's centroid in a resampled image lies where the scaled camera matrix projects the
+    point the original matrix put at the blob's centre (pixel centres at whole numbers, both sizes)."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    from experiments.scaled_rig_data import scaled_matrix, write_scaled
+
+    K = np.array([[400.0, 0.0, 79.5], [0.0, 400.0, 59.5], [0.0, 0.0, 1.0]])
+    ray = np.array([0.07, -0.04, 1.0])  # a direction in the camera frame
+    u, v = (K @ ray)[:2]
+    yy, xx = np.mgrid[0:120, 0:160]
+    blob = np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 3.0**2))
+    source = tmp_path / "flume"
+    (source / "calib").mkdir(parents=True)
+    cv2.imwrite(str(source / "calib" / "c_L.jpg"), np.uint8(np.rint(250 * blob)), [cv2.IMWRITE_JPEG_QUALITY, 100])
+    (source / "truth.json").write_text(json.dumps({"K": K.tolist(), "size": [160, 120]}))
+    for scale in (0.75, 1.25):
+        out = tmp_path / f"x{scale}"
+        assert write_scaled(source, out, scale) == 1
+        truth = json.loads((out / "truth.json").read_text())
+        assert truth["size"] == [round(160 * scale), round(120 * scale)]
+        assert np.allclose(truth["K"], scaled_matrix(K, scale))
+        image = cv2.imread(str(out / "calib" / "c_L.png"), cv2.IMREAD_GRAYSCALE).astype(float)
+        image[image < 10] = 0  # the JPEG's faint ringing off the blob
+        rows, cols = np.mgrid[0 : image.shape[0], 0 : image.shape[1]]
+        centroid = np.array([(image * cols).sum(), (image * rows).sum()]) / image.sum()
+        expected = (np.asarray(truth["K"]) @ ray)[:2]
+        assert np.abs(centroid - expected).max() < 0.05, (scale, centroid, expected)
+        assert np.abs(centroid - np.array([u, v]) * scale).max() > 0.1  # the half-pixel shift is there to see
