@@ -202,7 +202,8 @@ def _cmd_reconstruct(args) -> int:
     if not (args.photometric_ratio >= 0):
         raise JaxStereoError(f"--photometric-ratio must be >= 0 (0 keeps every match), got {args.photometric_ratio}")
     options = ReconstructOptions(model=args.model, z_range_m=z_range,
-                                 match=MatchOptions(block_size=args.block_size, two_way=not args.one_way),
+                                 match=MatchOptions(block_size=args.block_size, two_way=not args.one_way,
+                                                    match_exposure=not args.levels_as_they_are),
                                  water_level_std_m=args.water_level_std,
                                  max_photometric_ratio=args.photometric_ratio or None)
     preview = Path(args.preview) if args.preview else output.with_name(output.stem + "_preview.png")
@@ -256,6 +257,7 @@ def _cmd_reconstruct(args) -> int:
     print(f"reconstruct: model {survey.model}, water level {level}")
     print(f"  points                      {len(survey)}")
     print(f"  submerged fraction          {summary['submerged_fraction']:.3f}")
+    _print_exposure(summary.get("exposure_right_to_left"))
     print(f"  exact curve off the rows    {summary['vertical_parallax_px_mean']:.3f} / "
           f"{summary['vertical_parallax_px_max']:.3f} px mean / max (under water; matches moved onto it)")
     print(f"  dropped                     {summary['dropped_rays_apart']} rays apart, "
@@ -270,6 +272,20 @@ def _cmd_reconstruct(args) -> int:
         print(f"  {stage:<27} {seconds:.2f}")
     print(f"survey: {output}\npreview: {preview}\nsummary: {summary_path}" + (f"\nply: {args.ply}" if args.ply else ""))
     return 0
+
+
+def _print_exposure(exposure: dict | None) -> None:
+    """One line on the map given to the right image's grey levels before matching (`exposure.py`)."""
+    if exposure is None:
+        return
+    if not exposure["applied"]:
+        print("  right camera's levels       as the left's (no map)")
+        return
+    gains = " / ".join(f"{g:.3f}" for g in exposure["gain"])
+    offsets = " / ".join(f"{o:+.1f}" for o in exposure["offset_levels"])
+    shape = max(exposure["fit_rms_levels"])
+    print(f"  right camera's levels       mapped onto the left's and matched again: gain {gains}, offset {offsets} "
+          f"levels" + (f" (tone curve off a line by {shape:.1f} levels RMS)" if shape >= 1.0 else ""))
 
 
 def _finish_survey_files(writer, survey, ply: str | None) -> None:
@@ -723,7 +739,8 @@ def _match_plan(args):
     from .._stereo.table_cache import source_digest
 
     arguments = {"water_level": args.water_level, "z_range": args.z_range, "model": args.model,
-                 "block_size": args.block_size, "one_way": args.one_way}
+                 "block_size": args.block_size, "one_way": args.one_way,
+                 "levels_as_they_are": args.levels_as_they_are}
     return plan_path(os.path.join(root, "tables"), source_digest, args.rig, arguments)
 
 

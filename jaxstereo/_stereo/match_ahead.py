@@ -36,6 +36,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from .exposure import ExposureMatch, match_exposure
 from .matching import MatchOptions, sgbm_disparity
 from .table_cache import trim_folder
 
@@ -44,13 +45,15 @@ log = logging.getLogger("jaxstereo")
 
 class Matched(NamedTuple):
     """A matched pair: the `left` and `right` rectified images (h, w[, 3]) uint8, SGBM's `disparity` (h, w)
-    float32 pixels of the left rectified image (NaN: no match) and the left camera's remap tables `left_map`
-    (two (h, w) float32: real pixel x, y of each left rectified pixel)."""
+    float32 pixels of the left rectified image (NaN: no match), the left camera's remap tables `left_map`
+    (two (h, w) float32: real pixel x, y of each left rectified pixel) and the `exposure` map the right image
+    was given (None: not asked for)."""
 
     left: np.ndarray
     right: np.ndarray
     disparity: np.ndarray
     left_map: tuple[np.ndarray, np.ndarray]
+    exposure: ExposureMatch | None
 
 
 def remap(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
@@ -62,14 +65,28 @@ def match_rectifying(left_image: np.ndarray, right_image: np.ndarray, maps, sear
                      options: MatchOptions, colour: bool) -> Matched:
     """Rectify the real images with `maps` (left, right: two (h, w) float32 each, `rectification_maps`) and match
     them with SGBM over `search` (first disparity, count) pixels: on the three colour channels when `colour` and
-    the images have them, else on grey."""
+    the images have them, else on grey. With `options.match_exposure` the right rectified image's grey levels are
+    then mapped onto the left's at the matches found (`match_exposure`); where that changes them, the pair is
+    matched again, and `Matched.right` is the mapped image."""
     rect_l, rect_r = remap(left_image, maps[0]), remap(right_image, maps[1])
+    disparity = _sgbm(rect_l, rect_r, search, options, colour)
+    exposure = None
+    if options.match_exposure:
+        rect_r, exposure = match_exposure(rect_l, rect_r, disparity)
+        if exposure.applied:
+            disparity = _sgbm(rect_l, rect_r, search, options, colour)
+    return Matched(rect_l, rect_r, disparity, maps[0], exposure)
+
+
+def _sgbm(rect_l: np.ndarray, rect_r: np.ndarray, search: tuple[int, int], options: MatchOptions,
+          colour: bool) -> np.ndarray:
+    """SGBM's disparity (see `sgbm_disparity`) of the rectified pair, on colour or on grey (see
+    `match_rectifying`)."""
     if colour and rect_l.ndim == 3:
         pair = (rect_l, rect_r)
     else:
         pair = tuple(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in (rect_l, rect_r))
-    disparity = sgbm_disparity(pair[0], pair[1], int(search[0]), int(search[1]), options)
-    return Matched(rect_l, rect_r, disparity, maps[0])
+    return sgbm_disparity(pair[0], pair[1], int(search[0]), int(search[1]), options)
 
 
 @dataclasses.dataclass(frozen=True)

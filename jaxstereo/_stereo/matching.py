@@ -26,7 +26,8 @@ class MatchOptions:
     disparities carried from a foreground over the background beside it, up to this many pixels from the
     foreground's outline (see `drop_fattened`; 0: keep them); `occlusion_reach_px` drop this many matched
     pixels beside each strip the right camera cannot see, on the background's side (see `beside_occlusions`;
-    0: keep them).
+    0: keep them); `match_exposure` map the right image's grey levels onto the left's, one gain and one offset
+    per channel, before matching (see `exposure.py`; no map is applied where the cameras already agree).
     """
 
     block_size: int = 5
@@ -39,6 +40,7 @@ class MatchOptions:
     two_way: bool = True
     fattening_reach_px: int = 12
     occlusion_reach_px: int = 12
+    match_exposure: bool = True
 
     def __post_init__(self):
         if self.block_size < 1 or self.block_size % 2 == 0:

@@ -114,8 +114,8 @@ def dry_pair():
 
 def _sgbm(pair, options):
     rig, rect, left, right, search, _ = pair
-    (rect_l, rect_r, sgbm, _), _ = _match(rect, rig, left, right, search, options, None)
-    return rect_l, rect_r, sgbm
+    matched, _ = _match(rect, rig, left, right, search, options, None)
+    return matched.left, matched.right, matched.disparity
 
 
 @pytest.fixture(scope="module")
@@ -156,6 +156,34 @@ def test_matches_beside_an_occluded_strip_are_off_more_often_and_are_dropped(x64
     off_dropped, _ = _scores(dropped[::ROW_STEP], true)
     assert off_dropped < off_kept - 1.5  # 7.21 % against 9.62 % measured
     assert np.isfinite(dropped).sum() > 0.85 * np.isfinite(kept).sum()  # 91.4 % of the matches stay
+
+
+def test_a_right_camera_exposed_otherwise_matches_as_well_once_its_levels_are_mapped(x64, dry_pair, dry_match):
+    """The dry pair with its right image darker and bluer, as a second camera with another exposure and white
+    balance sees it (gains 0.90, 0.85, 0.80 on R, G, B, and a black level 4 grey levels up): SGBM on the levels
+    as they are loses matches and places more of them wrongly; with the right image's levels mapped onto the
+    left's at the first matches (`exposure.py`) and the pair matched again, the matches are those of the pair as
+    rendered, and the map is the darkening's inverse."""
+    rig, rect, left, right, search, true = dry_pair
+    gains, black = np.array([0.90, 0.85, 0.80]), 4.0
+    darker = np.clip(np.rint(right * gains + black), 0, 255).astype(np.uint8)
+    mapped, _ = _match(rect, rig, left, darker, search, ReconstructOptions(), None)
+    (_, _, as_is), rendered = _sgbm((rig, rect, left, darker, search, true), ReconstructOptions(
+        match=MatchOptions(match_exposure=False))), dry_match[2]
+    off_rendered, off_mapped, off_as_is = (_scores(d[::ROW_STEP], true)[0] for d in (rendered, mapped.disparity, as_is))
+    count_rendered, count_mapped, count_as_is = (np.isfinite(d).sum() for d in (rendered, mapped.disparity, as_is))
+    assert count_as_is < 0.95 * count_rendered and off_as_is > off_rendered + 0.4  # 92.0 %; 8.01 % against 7.21 %
+    assert count_mapped > 0.99 * count_rendered and off_mapped < off_rendered + 0.1  # 100.1 %; 7.20 %
+    levels = np.arange(40, 221)  # the levels most of the image holds
+    inverse = (levels[:, None] - black) / gains
+    assert np.abs(mapped.exposure.table[levels] - inverse).max() < 2.0  # 1.44 grey levels measured
+    assert mapped.exposure.applied and not _exposure_of(dry_pair).applied
+
+
+def _exposure_of(pair):
+    """The exposure map fitted to the dry pair as rendered: its two cameras are alike."""
+    rig, rect, left, right, search, _ = pair
+    return _match(rect, rig, left, right, search, ReconstructOptions(), None)[0].exposure
 
 
 def _true_wet_disparity(rect, rig, interface, gt, stage, shape):
@@ -204,7 +232,8 @@ def test_wet_matches_refine_and_move_onto_their_exact_curves_against_true_dispar
     left, right = (cv2.cvtColor(cv2.imread(str(DATA / f"bw_I_wet_{s}.jpg")), cv2.COLOR_BGR2RGB) for s in "LR")
     options = ReconstructOptions()
     search = _search_range(rect, rig, interface, (-0.03, float(interface.level) + 0.4), options)
-    (rect_l, rect_r, sgbm, _), _ = _match(rect, rig, left, right, search, options, None)
+    matched, _ = _match(rect, rig, left, right, search, options, None)
+    rect_l, rect_r, sgbm = matched.left, matched.right, matched.disparity
     table = _row_offset_table(rect, rig, interface, rig.image_size, search)
     offset = _row_offsets(table, sgbm, search)
     refined = refine_disparity(rect_l, rect_r, sgbm, offset, sigma_window=5,
