@@ -24,7 +24,7 @@ import dataclasses
 import cv2
 import numpy as np
 
-QUANTILES = np.linspace(0.02, 0.98, 49)  # the distributions are compared at these fractions of their pixels
+QUANTILES = np.linspace(0.10, 0.90, 41)  # the central 80 % of the matched levels (see `fit_exposure`)
 MIN_LEVEL_CHANGE = 1.0  # grey levels: a map that moves no level of the images' range this far is not applied
 MIN_QUANTILES = 10  # below this many unclipped quantile pairs a channel is left as it is
 SAMPLE_STEP_PX = 4  # the matches compared: one pixel in this many along rows and columns

@@ -55,17 +55,18 @@ def test_an_exposure_and_white_balance_difference_is_undone():
     matched = np.isfinite(disparity)
     error = mapped[:, : -SHIFT].astype(float) - left[:, SHIFT:]  # each matched pixel against its left pixel
     assert matched[:, SHIFT:].all() and np.abs(error).max() <= 2  # rounding twice, and the darkened levels merged (1)
-    assert np.abs(error).mean() < 0.5  # 0.14
+    assert np.abs(error).mean() < 0.5  # 0.15
 
 
 def test_a_tone_curve_of_another_shape_is_followed_and_reported():
     gamma = 1.3
     left, right, disparity = _pair(_scene(3), lambda r: 255 * (r / 255) ** gamma)
     match = fit_exposure(*matched_levels(left, right, disparity))
-    levels = np.arange(30, 226)
+    low, high = np.quantile(right, [0.1, 0.9])  # the levels the map joins; beyond them it follows the best line
+    levels = np.arange(int(np.ceil(low)), int(high) + 1)
     inverse = 255 * (levels / 255) ** (1 / gamma)
-    assert np.abs(match.table[levels] - inverse[:, None]).max() < 1.0  # grey levels (0.49): the curve, not a line
-    assert min(match.residual) > 2.0  # the best straight line is off by more (4.3): a response of another shape
+    assert np.abs(match.table[levels] - inverse[:, None]).max() < 1.0  # grey levels (0.83): the curve, not a line
+    assert min(match.residual) > 2.0  # the best straight line is off by more (2.9): a response of another shape
 
 
 def test_clipped_levels_do_not_bend_the_map():
@@ -75,7 +76,7 @@ def test_clipped_levels_do_not_bend_the_map():
     left, right, disparity = _pair(_scene(4), lambda r: gain * r)
     assert (right == 255).mean() > 0.15
     match = fit_exposure(*matched_levels(left, right, disparity))
-    assert np.allclose(match.gain, 1 / gain, rtol=0.01) and np.allclose(match.offset, 0.0, atol=1.0)  # 0.750, -0.06
+    assert np.allclose(match.gain, 1 / gain, rtol=0.01) and np.allclose(match.offset, 0.0, atol=1.0)  # 0.750, 0.03
 
 
 @pytest.mark.parametrize("grey", [False, True])

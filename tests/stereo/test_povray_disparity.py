@@ -174,7 +174,8 @@ def test_a_right_camera_exposed_otherwise_matches_as_well_once_its_levels_are_ma
     count_rendered, count_mapped, count_as_is = (np.isfinite(d).sum() for d in (rendered, mapped.disparity, as_is))
     assert count_as_is < 0.95 * count_rendered and off_as_is > off_rendered + 0.4  # 92.0 %; 8.01 % against 7.21 %
     assert count_mapped > 0.99 * count_rendered and off_mapped < off_rendered + 0.1  # 100.1 %; 7.20 %
-    levels = np.arange(40, 221)  # the levels most of the image holds
+    low, high = np.quantile(darker, [0.1, 0.9])  # about the levels the map joins (113-196); beyond, the best line
+    levels = np.arange(int(np.ceil(low)), int(high) + 1)
     inverse = (levels[:, None] - black) / gains
     assert np.abs(mapped.exposure.table[levels] - inverse).max() < 2.0  # 1.44 grey levels measured
     assert mapped.exposure.applied and not _exposure_of(dry_pair).applied
