@@ -22,6 +22,36 @@ def test_incidence_limit_experiment_and_readme_update(tmp_path):
     assert "STALE-TABLE" not in text and "| 0.3 | 0.405 |" in text and text.endswith("after\n")
 
 
+def test_exposed_flume_passes_the_right_images_alone_through_the_other_response(tmp_path):
+    """`exposed_rig_data`: the right images' levels as the response says, the left ones as decoded, all as PNG."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    from experiments.exposed_rig_data import respond, write_exposed
+
+    levels = np.array([[[0, 64, 128], [200, 250, 255]]], np.uint8)  # one image, R G B
+    expected = np.rint(255 * (levels / 255.0) ** 1.3 * np.array([0.9, 0.85, 0.8]) + 4)
+    assert np.array_equal(respond(levels, (0.9, 0.85, 0.8), 4, 1.3), np.clip(expected, 0, 255))
+    assert respond(levels, (1, 1, 1), 0, 1.0).tolist() == levels.tolist()  # the identity
+    source = tmp_path / "flume"
+    (source / "calib").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for name in ("calib/c_L.jpg", "calib/c_R.jpg", "scene_L.jpg", "scene_R.jpg"):
+        cv2.imwrite(str(source / name), rng.integers(0, 256, (12, 16, 3), dtype=np.uint8))
+    (source / "truth.json").write_text(json.dumps({"K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "size": [16, 12]}))
+    out = tmp_path / "exposed"
+    assert write_exposed(source, out, (0.9, 0.85, 0.8), 4, 1.0) == 2
+    assert json.loads((out / "truth.json").read_text())["images"].startswith("png")
+    for name in ("calib/c_L", "calib/c_R", "scene_L", "scene_R"):
+        decoded = cv2.imread(str(source / f"{name}.jpg"))
+        written = cv2.imread(str(out / f"{name}.png"))
+        if name.endswith("_R"):
+            decoded = respond(decoded[..., ::-1], (0.9, 0.85, 0.8), 4, 1.0)[..., ::-1]
+        assert np.array_equal(written, decoded), name
+
+
 def test_resampled_flume_moves_pixels_as_its_camera_matrix_says(tmp_path):
     """`scaled_rig_data`: a blob's centroid in a resampled image lies where the scaled camera matrix projects the
     point the original matrix put at the blob's centre (pixel centres at whole numbers, both sizes)."""
