@@ -27,6 +27,8 @@ import dataclasses
 import cv2
 import numpy as np
 
+from .shading import ShadingField, fit_shading
+
 QUANTILES = np.linspace(0.10, 0.90, 41)  # the central 80 % of the matched levels (see `fit_exposure`)
 MIN_LEVEL_CHANGE = 1.0  # grey levels: a map that moves no level of the images' range this far is not applied
 MIN_QUANTILES = 10  # below this many unclipped quantile pairs a channel is left as it is
@@ -35,37 +37,52 @@ SAMPLE_STEP_PX = 4  # the matches compared: one pixel in this many along rows an
 
 @dataclasses.dataclass(frozen=True)
 class ExposureMatch:
-    """The map applied to the right rectified image's grey levels, per channel.
+    """The map applied to the right rectified image's grey levels, per channel, and the smooth gain over it.
 
     **Fields:** `table` (256, channels) float64, the level each right level is mapped to (the identity for a
     channel left as it is); `gain`, `offset` (channels,) the straight line that fits it best (offset in grey
     levels) and `residual` (channels,) how far the map is from that line, RMS grey levels over the compared
     quantiles (a tone curve that differs in shape, not only by exposure; NaN where a channel could not be
-    fitted); `applied` whether any channel was changed.
+    fitted); `levels_mapped` whether any channel's levels are changed; `shading` the gain that varies over the
+    image (`shading.py`; None where it could not be fitted). `applied`: whether the right image is changed.
     """
 
     table: np.ndarray
     gain: tuple[float, ...]
     offset: tuple[float, ...]
     residual: tuple[float, ...]
-    applied: bool
+    levels_mapped: bool
+    shading: ShadingField | None = None
+
+    @property
+    def applied(self) -> bool:
+        return self.levels_mapped or (self.shading is not None and self.shading.applied)
 
     def as_dict(self) -> dict:
+        shading = self.shading
         return {"gain": list(self.gain), "offset_levels": list(self.offset), "fit_rms_levels": list(self.residual),
-                "applied": self.applied}
+                "levels_mapped": self.levels_mapped,
+                "shading_gain_range": None if shading is None else [shading.low, shading.high],
+                "shading_applied": shading is not None and shading.applied, "applied": self.applied}
+
+
+def matched_pixels(disparity: np.ndarray, width: int, step: int = SAMPLE_STEP_PX) -> tuple[np.ndarray, ...]:
+    """The matches `disparity` (h, w, pixels, NaN: no match; `x_right = x_left - d`) holds on every `step`-th row
+    and column whose right pixel (column rounded) lies inside a right image `width` pixels wide: their `rows`, left
+    `columns` and `right_columns` (n,) each."""
+    d = disparity[::step, ::step]
+    rows, columns = np.nonzero(np.isfinite(d))
+    rows, columns = rows * step, columns * step
+    right_columns = np.rint(columns - disparity[rows, columns]).astype(np.intp)
+    inside = (right_columns >= 0) & (right_columns < width)
+    return rows[inside], columns[inside], right_columns[inside]
 
 
 def matched_levels(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
                    step: int = SAMPLE_STEP_PX) -> tuple[np.ndarray, np.ndarray]:
     """The grey levels of matched pixels in both rectified images (h, w[, c] uint8): the left pixel and the right
-    pixel its `disparity` (h, w, pixels, NaN: no match; `x_right = x_left - d`, column rounded) points to, on
-    every `step`-th row and column. Two (n, c) uint8 arrays (c = 1 for grey images)."""
-    d = disparity[::step, ::step]
-    rows, columns = np.nonzero(np.isfinite(d))
-    rows, columns = rows * step, columns * step
-    right_columns = np.rint(columns - disparity[rows, columns]).astype(np.intp)
-    inside = (right_columns >= 0) & (right_columns < right.shape[1])
-    rows, columns, right_columns = rows[inside], columns[inside], right_columns[inside]
+    pixel its `disparity` points to (see `matched_pixels`). Two (n, c) uint8 arrays (c = 1 for grey images)."""
+    rows, columns, right_columns = matched_pixels(disparity, right.shape[1], step)
     shape = (-1, 1 if left.ndim == 2 else left.shape[2])
     return left[rows, columns].reshape(shape), right[rows, right_columns].reshape(shape)
 
@@ -113,17 +130,34 @@ def fit_exposure(left_levels: np.ndarray, right_levels: np.ndarray) -> ExposureM
 
 
 def apply_exposure(image: np.ndarray, match: ExposureMatch) -> np.ndarray:
-    """`image` (h, w[, c] uint8) with `match`'s map applied through a lookup table, rounded and clipped to
-    0-255; pixels at 0 (rectification's border, outside the camera's view) stay at 0."""
+    """`image` (h, w[, c] uint8) with `match`'s map of the levels and its smooth gain applied, rounded once and
+    clipped to 1-255; levels at 0 (rectification's border, outside the camera's view) stay at 0."""
     if not match.applied:
         return image
-    table = np.clip(np.rint(match.table), 1, 255).astype(np.uint8)
-    table[0] = 0
-    return cv2.LUT(image, np.ascontiguousarray(table[:, 0]) if image.ndim == 2 else table.reshape(1, 256, -1))
+    if not match.shading or not match.shading.applied:
+        table = np.clip(np.rint(match.table), 1, 255).astype(np.uint8)
+        table[0] = 0
+        return cv2.LUT(image, np.ascontiguousarray(table[:, 0]) if image.ndim == 2 else table.reshape(1, 256, -1))
+    planes = image[..., None] if image.ndim == 2 else image
+    gain = match.shading.image()
+    out = np.empty(planes.shape, np.uint8)
+    for c in range(planes.shape[2]):
+        levels = match.table[:, c].astype(np.float32)[planes[..., c]] * gain
+        out[..., c] = np.where(planes[..., c] == 0, 0, np.clip(np.rint(levels), 1, 255))
+    return out[..., 0] if image.ndim == 2 else out
 
 
 def match_exposure(left: np.ndarray, right: np.ndarray, disparity: np.ndarray) -> tuple[np.ndarray, ExposureMatch]:
     """The `right` rectified image (h, w[, c] uint8) with its grey levels mapped onto the `left`'s at the matches
-    `disparity` (h, w) pixels holds (see `fit_exposure`), and the map."""
-    match = fit_exposure(*matched_levels(left, right, disparity))
+    `disparity` (h, w) pixels holds (see `fit_exposure`), then multiplied by the smooth gain that takes the mapped
+    levels to the left's there (`fit_shading`), and what was applied."""
+    rows, columns, right_columns = matched_pixels(disparity, right.shape[1])
+    shape = (-1, 1 if left.ndim == 2 else left.shape[2])
+    left_levels, right_levels = left[rows, columns].reshape(shape), right[rows, right_columns].reshape(shape)
+    match = fit_exposure(left_levels, right_levels)
+    mapped = np.take_along_axis(match.table, right_levels.astype(np.intp), axis=0)  # (n, c) the mapped levels
+    bright = float(np.max(level_quantiles(left_levels, np.array([QUANTILES[-1]])))) if len(left_levels) else 0.0
+    shading = fit_shading(left_levels, mapped, rows, right_columns, (right.shape[1], right.shape[0]), bright,
+                          MIN_LEVEL_CHANGE)
+    match = dataclasses.replace(match, shading=shading)
     return apply_exposure(right, match), match

@@ -1,5 +1,7 @@
 """The right camera's grey levels mapped onto the left's at matched pixels, against known response differences."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -44,6 +46,10 @@ def test_cameras_that_agree_are_left_as_they_are():
     assert not match.applied and match.gain == (1.0, 1.0, 1.0) and match.offset == (0.0, 0.0, 0.0)
     assert apply_exposure(right, match) is right
     assert max(match.residual) < 0.5  # grey levels: the noise averages out over the quantiles (0.33)
+    left, right, disparity = _pair(_scene(1, 240, 360), lambda r: r + rng.normal(0.0, 1.0, r.shape))
+    mapped, whole = match_exposure(left, right, disparity)
+    assert not whole.applied and mapped is right  # nor a gain varying over the image
+    assert 0.995 < whole.shading.low <= whole.shading.high < 1.005
 
 
 def test_an_exposure_and_white_balance_difference_is_undone():
@@ -89,3 +95,19 @@ def test_the_rectified_images_black_border_stays_black(grey):
     assert match.applied and mapped.shape == right.shape and mapped.dtype == np.uint8
     assert (mapped[:, -12:] == 0).all() and (mapped[:, :-12] > 0).all()
     assert abs(float(np.median(mapped[:, :-12])) - float(np.median(left[:, SHIFT:-12]))) <= 2 * MIN_LEVEL_CHANGE
+
+
+def test_a_gain_that_varies_smoothly_over_the_image_is_undone():
+    """The right image darker toward its left edge and its corners (a vignetting the left camera meets elsewhere):
+    no one map of the levels undoes it; the smooth gain fitted at the matches does, to about a grey level."""
+    h, w = 240, 360
+    columns, rows = np.meshgrid(np.arange(w + SHIFT) - SHIFT, np.arange(h))  # the right image's own columns
+    x, y = 2 * columns / (w - 1) - 1, 2 * rows / (h - 1) - 1
+    field = np.exp(-0.04 + 0.03 * x - 0.02 * x * x - 0.015 * y * y)[..., None]  # 0.90-0.97 over the image
+    left, right, disparity = _pair(_scene(6, h, w), lambda r: r * field[:, SHIFT:])
+    mapped, match = match_exposure(left, right, disparity)
+    assert match.shading.applied
+    error = mapped[:, :-SHIFT].astype(float) - left[:, SHIFT:]
+    assert np.abs(error).mean() < 0.6 and np.percentile(np.abs(error), 99) <= 2  # grey levels (0.17, 1)
+    levels_only = apply_exposure(right, dataclasses.replace(match, shading=None))
+    assert np.abs(levels_only[:, :-SHIFT].astype(float) - left[:, SHIFT:]).mean() > 1.5  # one map is not enough (2.06)
