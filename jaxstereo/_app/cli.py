@@ -281,11 +281,16 @@ def _print_exposure(exposure: dict | None) -> None:
     if not exposure["applied"]:
         print("  right camera's levels       as the left's (no map)")
         return
-    gains = " / ".join(f"{g:.3f}" for g in exposure["gain"])
-    offsets = " / ".join(f"{o:+.1f}" for o in exposure["offset_levels"])
-    shape = max(exposure["fit_rms_levels"])
-    print(f"  right camera's levels       mapped onto the left's and matched again: gain {gains}, offset {offsets} "
-          f"levels" + (f" (tone curve off a line by {shape:.1f} levels RMS)" if shape >= 1.0 else ""))
+    parts = []
+    if exposure["levels_mapped"]:
+        shape = max(exposure["fit_rms_levels"])
+        parts.append("gain " + " / ".join(f"{g:.3f}" for g in exposure["gain"]) + ", offset "
+                     + " / ".join(f"{o:+.1f}" for o in exposure["offset_levels"]) + " levels"
+                     + (f" (tone curve off a line by {shape:.1f} levels RMS)" if shape >= 1.0 else ""))
+    if exposure["shading_applied"]:
+        low, high = exposure["shading_gain_range"]
+        parts.append(f"times a gain varying over the image from {low:.3f} to {high:.3f}")
+    print("  right camera's levels       mapped onto the left's and matched again: " + "; ".join(parts))
 
 
 def _finish_survey_files(writer, survey, ply: str | None) -> None:
