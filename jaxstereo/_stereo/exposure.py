@@ -1,17 +1,19 @@
 """The right camera's grey levels mapped onto the left's, so that the pair is matched on like levels.
 
-Two cameras of a rig rarely record a scene alike: their exposure, gain, black level, white balance and tone
-curve differ, while SGBM's cost, the sub-pixel fit and the photometric check all compare grey levels as they are.
-After a first match, each channel's levels at the matched pixels of both images (the same scene points, so their
+Two cameras of a rig rarely record a scene alike: their exposure, gain, black level, white balance and tone curve
+differ, while SGBM's cost, the sub-pixel fit and the photometric check all compare grey levels as they are. After a
+first match, each channel's levels at the matched pixels of both images (the same scene points, so their
 distributions differ by the cameras alone) are compared quantile by quantile over their central 80 %, and the right
 image's levels are mapped onto the left's through those quantiles: a monotone map that undoes a gain (exposure,
 white balance), an offset (black level) and a tone curve of another shape alike. Where it moves a level by a grey
 level or more the pair is matched again on the mapped image; where the cameras agree nothing changes, and it costs
-about 10 ms. (Fitted to the images' whole distributions instead, the map also followed what one camera sees and
-the other does not: on the POV-Ray flume's wet rubble, whose cameras agree, it moved levels by up to 5 and the
-submerged cloud-to-surface MAE went from 1.64 to 1.88 mm. The tails are left out for the same reason: the darkest
-2 % of the grey rock's matched levels differ by 2.4 levels between its agreeing cameras, the central 80 % by 0.7
-at most over the flume's eight wet and dry pairs.)
+about 10 ms. The map is the same over the whole image; what varies over it (each lens's vignetting, met at two
+places of its frame) is then fitted as a smooth gain at the same matches (`shading.py`) and applied with it. (Fitted
+to the images' whole distributions instead, the map also followed what one camera sees and the other does not: on
+the POV-Ray flume's wet rubble, whose cameras agree, it moved levels by up to 5 and the submerged cloud-to-surface
+MAE went from 1.64 to 1.88 mm. The tails are left out for the same reason: the darkest 2 % of the grey rock's
+matched levels differ by 2.4 levels between its agreeing cameras, the central 80 % by 0.7 at most over the flume's
+eight wet and dry pairs.)
 
 The survey is sensitive to such differences well below what an eye sees: on that rubble (stage I, wet) with the
 right image 1 % darker the submerged MAE was 2.27 mm (painted and grey rock alike), 0.5 % darker 1.85 and 1.77 mm;

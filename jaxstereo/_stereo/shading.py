@@ -7,6 +7,11 @@ each matched pixel (summed over the channels) is fitted, in logarithms, by a qua
 image: first the median of each cell of a coarse grid (robust to mismatches), then the surface through the cells'
 medians (least squares, weighted by their counts). The right image is multiplied by the surface where it departs
 from one by a grey level or more at the image's bright levels.
+
+On the POV-Ray flume's wet rubble with both images darkened toward their corners alike (`1 - a r^2`, r = 1 at the
+corners), the submerged cloud-to-surface MAE was 2.21 mm at a = 0.10 and 3.16 mm at a = 0.25 (1.64 as rendered);
+with this gain, 1.77 and 2.27 mm. The rest is the gain's dependence on each point's disparity, which a surface over
+the right image alone does not see. On the flume as rendered the surface spans 0.9989-1.0001 and is not applied.
 """
 
 from __future__ import annotations
