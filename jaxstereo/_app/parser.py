@@ -130,7 +130,7 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--levels-as-they-are", action="store_true",
                    help="match the images' grey levels as the cameras recorded them (default: the right image's "
                         "levels are mapped onto the left's at the first matches, and the pair matched again where "
-                        "the cameras' exposure, white balance or tone curve differ)")
+                        "the cameras' exposure, white balance, tone curve or shading over the image differ)")
     p.add_argument("-o", "--output", required=True, help="survey .npz to write")
     p.add_argument("--ply", help="also write the points as PLY")
     p.add_argument("--preview", help="preview PNG (default: next to the survey, *_preview.png)")
