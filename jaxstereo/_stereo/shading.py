@@ -80,9 +80,7 @@ def fit_shading(left_levels: np.ndarray, right_levels: np.ndarray, rows: np.ndar
     weight = np.sqrt(counts[keep].astype(np.float64))
     coefficients = np.linalg.lstsq(design * weight[:, None], medians * weight, rcond=None)[0]
     field = ShadingField(coefficients, (w, h), 1.0, 1.0, False)
-    corners = field.gain(np.array([0.0, 0.0, h - 1.0, h - 1.0, (h - 1) / 2]),
-                         np.array([0.0, w - 1.0, 0.0, w - 1.0, (w - 1) / 2]))
-    grid = field.gain(np.linspace(0, h - 1, 9)[:, None], np.linspace(0, w - 1, 13)[None, :])
-    low, high = float(min(grid.min(), corners.min())), float(max(grid.max(), corners.max()))
+    grid = field.gain(np.linspace(0, h - 1, 9)[:, None], np.linspace(0, w - 1, 13)[None, :])  # corners and centre
+    low, high = float(grid.min()), float(grid.max())
     applied = max(abs(low - 1.0), abs(high - 1.0)) * bright_level >= min_change
     return dataclasses.replace(field, low=low, high=high, applied=bool(applied))
