@@ -84,3 +84,39 @@ def test_resampled_flume_moves_pixels_as_its_camera_matrix_says(tmp_path):
         expected = (np.asarray(truth["K"]) @ ray)[:2]
         assert np.abs(centroid - expected).max() < 0.05, (scale, centroid, expected)
         assert np.abs(centroid - np.array([u, v]) * scale).max() > 0.1  # the half-pixel shift is there to see
+
+
+def test_distorted_flume_moves_pixels_as_its_lens_says(tmp_path):
+    """`distorted_rig_data`: a blob's centroid in a distorted image lies where OpenCV's `projectPoints` puts the ray
+    through the blob's centre in the ideal image, through the distorted camera matrix and the lens of its side."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    from experiments.distorted_rig_data import distorted_matrix, write_distorted
+
+    K = np.array([[400.0, 0.0, 79.5], [0.0, 400.0, 59.5], [0.0, 0.0, 1.0]])
+    lenses = {"L": (-0.3, 0.1, 1e-3, -2e-3, 0.0), "R": (0.4, 0.0, 0.0, 0.0, 0.05)}  # barrel; pincushion
+    ray = np.array([0.16, 0.11, 1.0])  # a direction in the camera frame
+    u, v = (K @ ray)[:2]
+    yy, xx = np.mgrid[0:120, 0:160]
+    blob = np.uint8(np.rint(250 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 3.0**2))))
+    source = tmp_path / "flume"
+    (source / "calib").mkdir(parents=True)
+    for side in "LR":
+        cv2.imwrite(str(source / "calib" / f"c_{side}.jpg"), blob, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    (source / "truth.json").write_text(json.dumps({"K": K.tolist(), "size": [160, 120]}))
+    out = tmp_path / "distorted"
+    assert write_distorted(source, out, lenses, zoom=1.05) == 2
+    truth = json.loads((out / "truth.json").read_text())
+    assert np.allclose(truth["K"], distorted_matrix(K, 1.05)) and truth["lens_distortion"]["L"] == list(lenses["L"])
+    for side, dist in lenses.items():
+        image = cv2.imread(str(out / "calib" / f"c_{side}.png"), cv2.IMREAD_GRAYSCALE).astype(float)
+        image[image < 10] = 0  # the spline's faint ringing off the blob
+        rows, cols = np.mgrid[0 : image.shape[0], 0 : image.shape[1]]
+        centroid = np.array([(image * cols).sum(), (image * rows).sum()]) / image.sum()
+        expected, _ = cv2.projectPoints(ray[None], np.zeros(3), np.zeros(3), np.asarray(truth["K"]), np.asarray(dist))
+        expected = expected.ravel()
+        assert np.abs(centroid - expected).max() < 0.05, (side, centroid, expected)
+        assert np.abs(centroid - (np.asarray(truth["K"]) @ ray)[:2]).max() > 0.5  # the lens's move is there to see
