@@ -44,8 +44,8 @@ def distorted_matrix(K, zoom: float = ZOOM) -> np.ndarray:
 
 def ideal_pixels(K, dist, size: tuple[int, int], zoom: float = ZOOM) -> tuple[np.ndarray, np.ndarray]:
     """For each pixel of the distorted image (`size` (w, h)), the pixel of the ideal pinhole image (camera matrix
-    `K`) its ray lands on: two (h, w) float32 maps for `cv2.remap`. The distortion `dist` (k1, k2, p1, p2, k3) is
-    inverted by fixed-point iteration on the normalised plane, until it moves no point by more than 1e-12."""
+    `K`) its ray lands on: two (h, w) float32 maps, x and y, for `resample`. The distortion `dist` (k1, k2, p1, p2,
+    k3) is inverted by fixed-point iteration on the normalised plane, until it moves no point by more than 1e-12."""
     w, h = size
     Kd = distorted_matrix(K, zoom)
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
