@@ -86,7 +86,7 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
     options = ReconstructOptions()
     search = _search_range(rect, rig, interface, z_range, options)
     disparity = _match(rect, rig, left_image, right_image, search, options, None)[0].disparity
-    offset = _row_offsets(_row_offset_table(rect, rig, interface, rig.image_size, search), disparity, search)
+    offset = _row_offsets(_row_offset_table(rect, rig, interface, rect.size, search), disparity, search)
     rl, rr, v, u, flat = _pairs_from_disparity(disparity)
     if rl.shape[0] == 0:
         return np.zeros((0, 2)), np.zeros((0, 2))

@@ -251,7 +251,7 @@ def _load_in_background(rect, rig: Rig, interface, model: str, with_covariances:
         try:
             jax.block_until_ready(_triangulate_chunk_jit(rect, rig.left, rig.right, interface, model, dummy, dummy))
             if with_covariances:
-                load_point_covariances(rig.image_size, search)
+                load_point_covariances(rect.size, search)
         except Exception as err:  # noqa: BLE001 - only a head start: the real call raises it properly
             log.debug("loading the compiled functions ahead failed: %s", err)
 
@@ -389,7 +389,7 @@ def reconstruct(
     rect = rectify_checked(rig.left, rig.right, interface, mode)
     search = _search_range(rect, rig, interface, z_range, options)
     loading = _load_in_background(rect, rig, interface, model, options.uncertainty, search)
-    offsets = _row_offset_table(rect, rig, interface, rig.image_size, search) if model == "exact" else None
+    offsets = _row_offset_table(rect, rig, interface, rect.size, search) if model == "exact" else None
     (rect_l, rect_r, disparity, left_map, exposure), ahead = _match(rect, rig, left_image, right_image, search, options,
                                                           match_ahead)
     timings["rectify+match (s)"] = time.perf_counter() - t0
@@ -492,7 +492,7 @@ def _point_errors(rect, rig: Rig, interface, shared: SharedErrors, search, kept:
                   refracts: bool, on_rows=None) -> dict:
     """The kept points' error fields for the `Survey` (see `point_covariances`, and its `on_rows`): the submerged
     points' from the refracted sub-table when the model `refracts`, every point's from the in-air one otherwise."""
-    table = shared_covariance_table(rect, rig, interface, shared, rig.image_size, search)
+    table = shared_covariance_table(rect, rig, interface, shared, rect.size, search)
     return point_covariances(table, kept.v, kept.u, _at(subpixel.disparity, kept.flat), kept.submerged & refracts,
                              _at(subpixel.sigma, kept.flat), _at(subpixel.disagreement, kept.flat),
                              on_rows)  # float32, as used there

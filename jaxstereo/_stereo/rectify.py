@@ -69,12 +69,19 @@ def rectify_checked(left: Camera, right: Camera, interface: Interface | None, mo
     itf = interface if mode == "water" else None
     arrays = cached_tables("rectification", (left, right, itf, mode),
                            lambda: _rectification_arrays(left, right, interface, mode))
+    size = (int(arrays["size"][0]), int(arrays["size"][1]))
     return Rectification(jnp.asarray(arrays["K"]), jnp.asarray(arrays["R"]), jnp.asarray(arrays["centers"]), itf,
-                         mode, left.image_size)
+                         mode, size)
 
 
 def _rectification_arrays(left: Camera, right: Camera, interface: Interface | None, mode: str) -> dict:
-    """The rectification's `K` (3, 3), `R` (3, 3) and `centers` (2, 3), float64 numpy."""
+    """The rectification's `K` (3, 3), `R` (3, 3), `centers` (2, 3), float64 numpy, and `size` (2,) (width,
+    height) pixels of the rectified images.
+
+    The rectified rows run along the baseline. Where the baseline runs up or down the left image (cameras side by
+    side across the images' short side, or turned a quarter about their axes), the rectified images are the real
+    ones' height wide and their width high, so that they hold the same view turned; otherwise they are the real
+    images' size."""
     cams = (_virtual_camera(left, interface), _virtual_camera(right, interface)) if mode == "water" else (left, right)
     c0, c1 = (np.asarray(c.center, dtype=np.float64) for c in cams)
     x = c1 - c0
@@ -88,6 +95,9 @@ def _rectification_arrays(left: Camera, right: Camera, interface: Interface | No
     R = np.stack([x, y, z])
     f = float(np.mean([float(cams[0].fx), float(cams[0].fy), float(cams[1].fx), float(cams[1].fy)]))
     w, h = left.image_size
+    along_image = np.asarray(left.pose.R) @ x  # the baseline in the left camera's frame
+    if abs(along_image[1]) > abs(along_image[0]):
+        w, h = h, w
     # Principal point: the mean view direction of the two cameras lands in the image centre.
     K = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
     shift = []
@@ -95,7 +105,7 @@ def _rectification_arrays(left: Camera, right: Camera, interface: Interface | No
         d = R @ np.asarray(cam.pose.R)[2]
         shift.append(f * d[:2] / d[2])
     K[:2, 2] -= np.mean(shift, axis=0)
-    return {"K": K, "R": R, "centers": np.stack([c0, c1])}
+    return {"K": K, "R": R, "centers": np.stack([c0, c1]), "size": np.array([w, h], dtype=np.int64)}
 
 
 def rectified_to_real(rect: Rectification, camera: Camera, side: int, pixels):

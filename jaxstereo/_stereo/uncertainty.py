@@ -140,7 +140,8 @@ def shared_covariance_table(rect: Rectification, rig: Rig, interface: Interface 
                             image_size: tuple[int, int], search: tuple[int, int]) -> dict:
     """The shared errors' covariance of a point (3, 3) and the point's derivative with respect to its disparity
     (3,), for emerged and submerged points (in air; refracted exactly), on a table over the left rectified pixel
-    (u, v) and the disparity (every `TABLE_STEP_PX` and `TABLE_STEP_DISPARITY_PX`).
+    (u, v) and the disparity (every `TABLE_STEP_PX` and `TABLE_STEP_DISPARITY_PX`), over the rectified images'
+    `image_size` (w, h) pixels (`rect.size`) and the disparity `search` (first, count) pixels.
 
     **Returns:** `{"table": (2, nv, nu, nd, 10) [xx, yy, zz, xy, xz, yz, zz from the water level alone] m^2 and
     [dx, dy, dz] / dd metres per pixel, "origin": (v0, u0, d0), "step": (sv, su, sd)}` for `point_covariances`.
@@ -180,9 +181,9 @@ def _table_axes(image_size: tuple[int, int], search: tuple[int, int]) -> tuple[n
 
 
 def load_point_covariances(image_size: tuple[int, int], search: tuple[int, int]) -> None:
-    """Trace `point_covariances`' compiled part for the table of `image_size` (w, h) and `search` (first, count)
-    pixels, and load it (JAX's persistent cache) or compile it, on zeros: what a fresh process would otherwise
-    do in its first call (a tenth of a second). Thread-safe; the values are not used."""
+    """Trace `point_covariances`' compiled part for the table of the rectified `image_size` (w, h) and `search`
+    (first, count) pixels, and load it (JAX's persistent cache) or compile it, on zeros: what a fresh process
+    would otherwise do in its first call (a tenth of a second). Thread-safe; the values are not used."""
     shape = (2, *(len(axis) for axis in _table_axes(image_size, search)), TABLE_CHANNELS)
     zeros = np.zeros(INTERPOLATION_CHUNK, np.float32)
     jax.block_until_ready(_chunk_errors(jnp.asarray(np.zeros(shape, np.float32)),

@@ -3,6 +3,8 @@
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
@@ -84,6 +86,47 @@ def test_resampled_flume_moves_pixels_as_its_camera_matrix_says(tmp_path):
         expected = (np.asarray(truth["K"]) @ ray)[:2]
         assert np.abs(centroid - expected).max() < 0.05, (scale, centroid, expected)
         assert np.abs(centroid - np.array([u, v]) * scale).max() > 0.1  # the half-pixel shift is there to see
+
+
+@pytest.mark.parametrize("turn", [90, 180])
+def test_turned_flume_moves_pixels_as_its_turned_cameras_say(tmp_path, turn):
+    """`turned_rig_data`: a blob's centroid in a turned image lies where the turned truth camera (its `R`, `t` and
+    `K`) projects the world point the original camera put at the blob's centre."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    from experiments.turned_rig_data import write_turned
+
+    K = np.array([[400.0, 0.0, 79.5], [0.0, 400.0, 59.5], [0.0, 0.0, 1.0]])
+    R, t = np.diag([1.0, -1.0, -1.0]), np.array([-0.1, 0.05, 2.0])  # nadir, 2 m up
+    point = np.array([0.13, 0.02, 0.1])  # in the world
+    u, v = (K @ (R @ point + t) / (R @ point + t)[2])[:2]
+    yy, xx = np.mgrid[0:120, 0:160]
+    blob = np.uint8(np.rint(250 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 3.0**2))))
+    source = tmp_path / "flume"
+    source.mkdir()
+    for side in "LR":
+        cv2.imwrite(str(source / f"c_{side}.jpg"), blob if side == "L" else blob // 2, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    camera = {"R": R.tolist(), "t": t.tolist()}
+    (source / "truth.json").write_text(json.dumps({"K": K.tolist(), "size": [160, 120],
+                                                   "rigs": {"main": {"L": camera, "R": camera}}}))
+    out = tmp_path / f"turned{turn}"
+    assert write_turned(source, out, turn) == 2
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["size"] == ([120, 160] if turn == 90 else [160, 120])
+    side = "L" if turn == 90 else "R"  # a half turn swaps the cameras: the left image came from the right one
+    image = cv2.imread(str(out / f"c_{side}.png"), cv2.IMREAD_GRAYSCALE).astype(float)
+    assert image.max() > 200  # the bright (left) blob
+    image[image < 10] = 0
+    rows, cols = np.mgrid[0 : image.shape[0], 0 : image.shape[1]]
+    centroid = np.array([(image * cols).sum(), (image * rows).sum()]) / image.sum()
+    cam = truth["rigs"]["main"][side]
+    X = np.asarray(cam["R"]) @ point + np.asarray(cam["t"])
+    expected = (np.asarray(truth["K"]) @ X / X[2])[:2]
+    assert np.abs(centroid - expected).max() < 0.05, (turn, centroid, expected)
+    assert np.abs(centroid - np.array([u, v])).max() > 10  # the blob did move
 
 
 def test_distorted_flume_moves_pixels_as_its_lens_says(tmp_path):
