@@ -29,7 +29,8 @@ class Rectification(eqx.Module):
 
     **Fields:** `K` (3, 3) shared rectified intrinsics, pixels; `R` (3, 3) world -> rectified camera
     rotation (both cameras); `centers` (2, 3) rectified camera centres (left, right), world metres;
-    `interface` (for "water", else None); `mode` ("air" or "water", static); `size` (width, height), static.
+    `interface` (for "water", else None); `mode` ("air" or "water", static); `size` (width, height) pixels of the
+    rectified images, static: the real images' size, or their height and width where the baseline runs down them.
     """
 
     K: Float[Array, "3 3"]
