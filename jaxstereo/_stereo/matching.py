@@ -144,7 +144,7 @@ def _cross_check(disparity, right_disparity, tolerance_px):
 
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,
-                     window: int = 31, small_window: int | None = 15, sigma_window: int = 5,
+                     window: int = 31, small_window: int | None = 9, sigma_window: int = 5,
                      subpixel: bool = True, with_sigma: bool = True, waterline: np.ndarray | None = None) -> Subpixel:
     """Sub-pixel disparities by Lucas-Kanade over a `window` x `window` patch, from whole-pixel bases, and
     each disparity's standard deviation from the fit's own residuals.
@@ -164,11 +164,16 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     With a `small_window`, the same fit over that smaller patch replaces the large one's where the two differ by
     more than `WINDOW_AGREEMENT` standard deviations of their difference (or only the small one is kept): a
     curved surface (rubble) whose relief the large patch averages over. On the POV-Ray flume's rubble the 31 px
-    patch smooths rocks 0.6 Dn50 wide; the 15 px patch there brings the wet and dry surveys' median difference
-    from 1.65 to 1.3 mm, while the flat board keeps the large patch. (A 63 px patch costs the same box sums and
-    brings the boards' submerged RMSE to 0.87 mm (nadir) and 0.44 mm (oblique), the rubble unchanged, but the
-    fit's std then no longer describes the error: per 5 cm layer the predicted RMS is 0.64-1.71 of the measured,
-    against 0.77-1.27 at 31 px. See `MATCH_NOISE_SCALE`.)
+    patch smooths rocks 0.6 Dn50 wide; a 15 px small patch there brought the wet and dry surveys' median
+    difference from 1.65 to 1.3 mm, while the flat board keeps the large patch. A 9 px small patch (the default
+    since round 50) brings the wet rubble's submerged cloud-to-surface MAE from 1.64 to 1.50 mm (grey rock 1.51
+    to 1.39), and on the same flume resampled to 0.75 of its pixels, where the patches span more of each rock,
+    from 2.47 to 2.07 mm (1.94 from 2.29); the nadir board's RMSE moves from 1.14 to 1.17 mm. (11 px: 1.52 and
+    2.18 mm; 7 px: 1.54 and 2.02 mm, the board 1.23 mm. Both patches smaller, 15 and 7 px: the rubble 1.44 mm
+    but the board 1.85 mm, as the agreement test then has no patch large enough for its weak texture.) (A 63 px
+    patch costs the same box sums and brings the boards' submerged RMSE to 0.87 mm (nadir) and 0.44 mm (oblique),
+    the rubble unchanged, but the fit's std then no longer describes the error: per 5 cm layer the predicted RMS is
+    0.64-1.71 of the measured, against 0.77-1.27 at 31 px. See `MATCH_NOISE_SCALE`.)
     A match that no patch fit could refine and whose own SGBM disparity lies off the plane of its patch
     (further from the plane's value at the centre than `OFF_PLANE_SPREADS` times the patch's spread and than
     `MAX_SPREAD_PX`) is flagged `off_surface`: its neighbours define a smooth surface it does not lie on, and the
@@ -182,13 +187,17 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     With a `waterline` (the water plane's own disparity at each pixel, `rectify.waterline_disparity`), a patch
     whose matches lie on both sides of the water keeps its fitted value but not the fit's standard deviation
     alone: the disparity changes its slope where the surface leaves the water (refraction flattens what lies
-    below), and the fit's std assumes one shift and one plane. There the std is the larger of the fit's and the
-    small patch's (SGBM's block's without a small patch). On the POV-Ray flume's nadir board, within 15 mm of the
-    water level, the fitted values were off by 1.2-1.4 mm RMS against stds of 0.7-1.0 mm (72-85 % within 2
-    sigma; the rest of the board 0.6-1.1 mm, 94 %); with the small patch's std there 87-98 % (RMS std 1.0-1.6
-    mm), and 96.7 % (was 82.4 %) at the oblique board's waterline corner. SGBM's block std there was 2-3 times
-    the error; dropping the fit for the small patch or SGBM's value covered the error too but raised the
-    boards' submerged RMSE from 1.20 to 1.29 mm (nadir) and from 0.65 to 0.82 mm (oblique).
+    below), and the fit's std assumes one shift and one plane. There the std is at least the fit's combined with
+    the large patch's offset from the small one's, averaged over the small patch (`_window_offset`; SGBM's
+    block's std without a small patch). On the POV-Ray flume's nadir board, within 15 mm of the water level,
+    the fitted values were off by 1.2-1.4 mm RMS against stds of 0.7-1.0 mm (72-85 % within 2 sigma; the rest
+    of the board 0.6-1.1 mm, 94 %). The 15 px small patch's own std, taken there until round 50, covered 87-98
+    % (93.5 % in all, RMS std 1.16 mm against an RMS error of 1.15); the 9 px patch's own std is larger than
+    the error it was a stand-in for (the 5 cm layer holding the waterline predicted 1.41 times its RMS error),
+    and the offset covers 92.1 % (RMS std 1.31 mm against 1.18; the oblique board's band 96.3 %, 0.92 against
+    0.65 mm). SGBM's block std there was 2-3 times the error; dropping the fit for the small patch or SGBM's
+    value covered the error too but raised the boards' submerged RMSE from 1.20 to 1.29 mm (nadir) and from 0.65
+    to 0.82 mm (oblique).
     Rows follow `row_offset` (rounded) where the exact epipolar curve leaves them. The work runs on bands of
     rows on a thread per core (`map_row_bands`), with the whole image's values (1.2 -> 0.73 s on the development
     flume's 1728x1152 pair, 2 cores), each band within `MAX_BAND_PIXELS` (its memory, not the image's size,
@@ -331,6 +340,7 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, u, v, shift: float, window:
                                channels, with_sigma, u, v, above)
     refined, sigma_refined, keep, straddles = large.refined, large.sigma, large.kept, large.straddles
     off_plane = large.off_plane
+    kink = None  # the large patch's offset from the small one's where the water cuts it, see below
     if small_window is not None and small_window < window:
         # Where the surface is curved within the large window (rubble), its fit averages over the relief; the
         # small window's fit is taken where the two disagree by more than their difference's noise.
@@ -340,6 +350,8 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, u, v, shift: float, window:
         large_sigma = sigma_refined if sigma_refined is not None else np.zeros_like(small)
         noise = np.sqrt(np.maximum(sigma_small**2 - large_sigma**2, 0.0))
         use_small = keep_small & (~keep | ~(np.abs(refined - small) <= WINDOW_AGREEMENT * noise))
+        if with_sigma and straddles is not None:
+            kink = _window_offset(small, refined, keep & keep_small, small_window)
         refined = np.where(use_small, small, refined)
         if sigma_refined is not None:
             sigma_refined = np.where(use_small, sigma_small, sigma_refined)
@@ -351,7 +363,7 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, u, v, shift: float, window:
     if with_sigma:
         sigma = np.where(keep, sigma_refined, sigma_sgbm)
         if straddles is not None:  # a patch across the waterline: see `refine_disparity`
-            bound = sigma_small if small_window is not None and small_window < window else sigma_sgbm
+            bound = np.hypot(sigma, kink) if kink is not None else sigma_sgbm
             sigma = np.where(keep & straddles, np.maximum(sigma, bound), sigma)
         disagreement = _disagreement(d0, refined, keep, sigma_sgbm, window, sigma_window)
     return Subpixel(_masked(np.where(keep, refined, d0), valid), _masked(sigma, valid), _masked(disagreement, valid),
@@ -497,6 +509,18 @@ class Subpixel(NamedTuple):
     sigma: np.ndarray | None
     disagreement: np.ndarray | None
     off_surface: np.ndarray | None = None
+
+
+def _window_offset(small, large, both, window: int):
+    """The magnitude of the mean of `small - large` (pixels) over each `window` x `window` square, taken where
+    `both` fits were kept (h, w); 0 where neither was: how far the large patch's fit lies from the small one's
+    around a pixel. Across a kink of the disparity (the waterline) that is the large patch's bias, plus the small
+    fit's own noise, which is not taken out: the bound it gives is on the safe side."""
+    k = both.astype(np.float32)
+    box = (window, window)
+    count = cv2.boxFilter(k, -1, box, normalize=False)
+    total = cv2.boxFilter(np.where(both, small - large, np.float32(0.0)), -1, box, normalize=False)
+    return np.abs(total) / np.maximum(count, np.float32(1.0))
 
 
 def _disagreement(sgbm, refined, keep, sigma_sgbm, window: int, block: int):

@@ -197,26 +197,35 @@ def test_a_band_without_a_match_gives_nan_and_the_others_their_whole_image_value
     assert np.isfinite(banded.disparity[:100]).all()
 
 
-def test_a_patch_across_the_waterline_keeps_its_value_and_takes_the_larger_std():
+def test_a_patch_across_the_waterline_keeps_its_value_and_adds_its_offset_from_the_small_patch():
     """With a waterline through the pair (the matches right of column 160 above the water), the values are the
-    ones without it; patches across the line (within 15 px of it) take the larger of their own std and the small
-    patch's; away from the line the std is unchanged."""
+    ones without it; patches across the line (within 15 px of it, 4 px for a small patch's fit) take their own
+    std combined with the mean of the small patch's fit less the large one's over the small patch (a numpy
+    reference from the two patch sizes run alone); away from the line the std is unchanged."""
     left, right, start, _ = _inclined_pair(seed=2)
     waterline = np.where(np.arange(W)[None, :] >= 160, start - 1.0, start + 1.0).astype(np.float32)
-    plain = refine_disparity(left, right, start, window=31, small_window=15)
-    split = refine_disparity(left, right, start, window=31, small_window=15, waterline=waterline)
-    small = refine_disparity(left, right, start, window=15, small_window=None)
+    plain = refine_disparity(left, right, start, window=31, small_window=9)
+    split = refine_disparity(left, right, start, window=31, small_window=9, waterline=waterline)
+    large = refine_disparity(left, right, start, window=31, small_window=None)
+    small = refine_disparity(left, right, start, window=9, small_window=None)
     np.testing.assert_array_equal(split.disparity, plain.disparity)
     np.testing.assert_array_equal(split.disagreement, plain.disagreement)
     u = np.arange(W)[None, :].repeat(H, axis=0)
     inner = (np.arange(H)[:, None] >= 20) & (np.arange(H)[:, None] < H - 20)
     across, away = inner & (np.abs(u - 159.5) < 15), inner & (np.abs(u - 159.5) > 16) & (u > 40) & (u < W - 40)
     np.testing.assert_array_equal(split.sigma[away], plain.sigma[away])
-    # Where both patch sizes kept their fits (else the standalone small patch reports SGBM's std)
-    refined = across & (plain.disparity != start) & (small.disparity != start)
+    both = (large.disparity != start) & (small.disparity != start)  # where each patch size kept its fit
+    difference = np.where(both, small.disparity - large.disparity, 0.0)
+    padded = [np.pad(a, 4) for a in (difference, both.astype(float))]
+    total, count = (np.lib.stride_tricks.sliding_window_view(a, (9, 9)).sum(axis=(-1, -2)) for a in padded)
+    offset = np.abs(total) / np.maximum(count, 1.0)
+    refined = across & (plain.disparity != start)
     assert refined.sum() > 0.9 * across.sum()
-    np.testing.assert_allclose(split.sigma[refined], np.maximum(plain.sigma, small.sigma)[refined], rtol=1e-6)
-    assert np.mean(split.sigma[refined] > plain.sigma[refined]) > 0.5  # the small patch's std is the larger
+    # A pixel that took the small patch's fit straddles the line when that patch does
+    straddles = np.abs(u - 159.5) < np.where(plain.disparity != large.disparity, 4.5, 15.5)
+    expected = np.where(straddles, np.hypot(plain.sigma, offset), plain.sigma)
+    np.testing.assert_allclose(split.sigma[refined], expected[refined], rtol=1e-4, atol=1e-6)
+    assert np.mean(split.sigma[refined] > plain.sigma[refined]) > 0.5
 
 
 def test_a_match_off_the_plane_of_its_patch_is_refined_or_flagged_off_the_surface():
