@@ -513,9 +513,9 @@ class Subpixel(NamedTuple):
 
 def _window_offset(small, large, both, window: int):
     """The magnitude of the mean of `small - large` (pixels) over each `window` x `window` square, taken where
-    `both` fits were kept (h, w); 0 where neither was: how far the large patch's fit lies from the small one's
-    around a pixel. Across a kink of the disparity (the waterline) that is the large patch's bias, plus the small
-    fit's own noise, which is not taken out: the bound it gives is on the safe side."""
+    `both` fits were kept (h, w); 0 where no pixel of the square kept both: how far the large patch's fit lies from
+    the small one's around a pixel. Across a kink of the disparity (the waterline) that is the large patch's bias,
+    plus the small fit's own noise, which is not taken out: the bound it gives is on the safe side."""
     k = both.astype(np.float32)
     box = (window, window)
     count = cv2.boxFilter(k, -1, box, normalize=False)
