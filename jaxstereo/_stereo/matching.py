@@ -511,28 +511,29 @@ class Subpixel(NamedTuple):
     off_surface: np.ndarray | None = None
 
 
+def _window_mean(values, where, window: int):
+    """The mean of `values` (h, w) over each `window` x `window` square, taken where `where` (h, w bool) holds, 0
+    where it holds nowhere in the square; and the count of those pixels, at least 1 (h, w), both float32."""
+    box = (window, window)
+    count = np.maximum(cv2.boxFilter(where.astype(np.float32), -1, box, normalize=False), np.float32(1.0))
+    return cv2.boxFilter(np.where(where, values, np.float32(0.0)), -1, box, normalize=False) / count, count
+
+
 def _window_offset(small, large, both, window: int):
     """The magnitude of the mean of `small - large` (pixels) over each `window` x `window` square, taken where
     `both` fits were kept (h, w); 0 where no pixel of the square kept both: how far the large patch's fit lies from
     the small one's around a pixel. Across a kink of the disparity (the waterline) that is the large patch's bias,
     plus the small fit's own noise, which is not taken out: the bound it gives is on the safe side."""
-    k = both.astype(np.float32)
-    box = (window, window)
-    count = cv2.boxFilter(k, -1, box, normalize=False)
-    total = cv2.boxFilter(np.where(both, small - large, np.float32(0.0)), -1, box, normalize=False)
-    return np.abs(total) / np.maximum(count, np.float32(1.0))
+    return np.abs(_window_mean(small - large, both, window)[0])
 
 
 def _disagreement(sgbm, refined, keep, sigma_sgbm, window: int, block: int):
     """SGBM's value minus the refined one, averaged over each `window` where the refined value was kept, shrunk
     by the variance SGBM's own noise leaves in that mean (its errors are correlated over a `block`-wide
     square): a systematic offset between the estimators, zero where none shows (h, w) pixels."""
-    k = keep.astype(np.float32)
-    box = (window, window)
-    count = np.maximum(cv2.boxFilter(k, -1, box, normalize=False), 1.0)
-    mean = cv2.boxFilter(np.where(keep, sgbm - refined, np.float32(0.0)), -1, box, normalize=False) / count
+    mean, count = _window_mean(sgbm - refined, keep, window)
     spread = np.minimum(sigma_sgbm, np.float32(1.0))  # beyond 1 px a match is dropped anyway
-    noise = cv2.boxFilter(k * spread**2, -1, box, normalize=False) / count * block**2 / count
+    noise = cv2.boxFilter(keep * spread**2, -1, (window, window), normalize=False) / count * block**2 / count
     return np.sign(mean) * np.sqrt(np.maximum(mean**2 - noise, 0.0))
 
 
