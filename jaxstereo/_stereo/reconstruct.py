@@ -63,9 +63,9 @@ class ReconstructOptions:
     `refine_disparity`; on the POV-Ray flume's boards the RMSE falls from 2.9 to 2.1 mm (nadir) and from 1.8
     to 1.1 mm (oblique), on its rubble the submerged MAE from 2.3 to 2.0 mm; the small patch of 9 px, not 15,
     takes the rubble's from 1.64 to 1.50 mm), and drop the matches off the smooth surface around them that no
-    patch fit could refine (`Subpixel.off_surface`; counted as `dropped_off_surface`); without it, SGBM's own sub-pixel values; `max_sigma_disparity_px` drop matches
-    whose disparity's standard deviation (from the matching itself, see `refine_disparity`) exceeds this: the
-    images do not place them; `uncertainty` propagate each point's covariance (`Survey.cov`, see
+    patch fit could refine (`Subpixel.off_surface`; counted as `dropped_off_surface`); without it, SGBM's own
+    sub-pixel values; `max_sigma_disparity_px` drop matches whose disparity's standard deviation (from the
+    matching itself, see `refine_disparity`) exceeds this: the images do not place them; `uncertainty` propagate each point's covariance (`Survey.cov`, see
     `jaxstereo._stereo.uncertainty`);
     `max_photometric_ratio` drop matches whose colour residual exceeds this multiple of their neighbours'
     (see `photometric_outliers`; on the POV-Ray flume's rubble the submerged MAE falls from 3.5 to 2.3 mm
