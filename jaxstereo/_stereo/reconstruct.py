@@ -65,8 +65,8 @@ class ReconstructOptions:
     takes the rubble's from 1.64 to 1.50 mm), and drop the matches off the smooth surface around them that no
     patch fit could refine (`Subpixel.off_surface`; counted as `dropped_off_surface`); without it, SGBM's own
     sub-pixel values; `max_sigma_disparity_px` drop matches whose disparity's standard deviation (from the
-    matching itself, see `refine_disparity`) exceeds this: the images do not place them; `uncertainty` propagate each point's covariance (`Survey.cov`, see
-    `jaxstereo._stereo.uncertainty`);
+    matching itself, see `refine_disparity`) exceeds this: the images do not place them; `uncertainty` propagate
+    each point's covariance (`Survey.cov`, see `jaxstereo._stereo.uncertainty`);
     `max_photometric_ratio` drop matches whose colour residual exceeds this multiple of their neighbours'
     (see `photometric_outliers`; on the POV-Ray flume's rubble the submerged MAE falls from 3.5 to 2.3 mm
     and its p95 from 11.5 to 6.8 mm, a quarter of the armoured slope's matches dropped; its boards lose
