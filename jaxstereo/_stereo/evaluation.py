@@ -4,28 +4,36 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._geometry.errors import JaxStereoError
+
 
 def layer_errors(points: np.ndarray, true_z: np.ndarray, water_level: float, layer_m: float = 0.05,
                  min_points: int = 50) -> list[dict]:
     """Vertical errors of surveyed points grouped in layers of depth below the water.
 
     **Arguments:** `points` (N, 3) world metres; `true_z` (N,) the true surface height under each
-    point, metres; `water_level` metres; `layer_m` layer thickness; layers with fewer than
-    `min_points` points are left out.
+    point, metres (NaN where unknown: such points are left out); `water_level` metres; `layer_m` layer
+    thickness; layers with fewer than `min_points` points are left out.
 
     **Returns:** one dict per layer (shallowest first, emerged layers have negative depth) with
-    `depth_from_m`, `depth_to_m`, `n`, `median_mm`, `rmse_mm`, `max_abs_mm`, `p95_abs_mm`.
+    `depth_from_m`, `depth_to_m`, `n`, `median_mm`, `rmse_mm`, `max_abs_mm`, `p95_abs_mm`. The layers' edges
+    are whole multiples of `layer_m` (each computed as one product, not summed up from the shallowest), so that
+    two surveys' layers share the same edges to the last digit, whatever depths each of them reaches.
     """
     err = points[:, 2] - true_z
     depth = water_level - true_z
-    lo = np.floor(depth.min() / layer_m) * layer_m
+    known = np.isfinite(err) & np.isfinite(depth)
+    if not known.any():
+        raise JaxStereoError(f"no point with a finite height and true height to evaluate ({len(err)} points given)")
+    err, depth = err[known], depth[known]
     rows = []
-    for start in np.arange(lo, depth.max() + 1e-12, layer_m):
-        m = (depth >= start) & (depth < start + layer_m)
+    for k in range(int(np.floor(depth.min() / layer_m)), int(np.floor(depth.max() / layer_m)) + 1):
+        start, stop = k * layer_m, (k + 1) * layer_m
+        m = (depth >= start) & (depth < stop)
         if m.sum() < min_points:
             continue
         e = err[m]
-        rows.append(dict(depth_from_m=float(start), depth_to_m=float(start + layer_m), n=int(m.sum()),
+        rows.append(dict(depth_from_m=float(start), depth_to_m=float(stop), n=int(m.sum()),
                          median_mm=float(1e3 * np.median(e)), rmse_mm=float(1e3 * np.sqrt(np.mean(e**2))),
                          max_abs_mm=float(1e3 * np.max(np.abs(e))), p95_abs_mm=float(1e3 * np.percentile(np.abs(e), 95))))
     return rows
