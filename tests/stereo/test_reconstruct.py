@@ -99,7 +99,8 @@ def test_cameras_at_unequal_heights_over_deep_water(capsys):
     raised = Pose.from_center(np.asarray(right.pose.R), np.asarray(right.center) + np.array([0.0, 0.0, 0.03]))
     right = dataclasses.replace(right, pose=raised)
     views = [jpeg(render_view(cam, scene.heightfield, js.Interface(level)).image) for cam in (left, right)]
-    survey, summary = reconstruct(views[0], views[1], Rig(left, right), level, ReconstructOptions(z_range_m=(-0.05, 0.4)))
+    survey, summary = reconstruct(views[0], views[1], Rig(left, right), level,
+                                  ReconstructOptions(z_range_m=(-0.05, 0.4)))
     rows = layer_errors(survey.points, spec.height(survey.points[:, 0]), level)
     with capsys.disabled():
         print("\nsloping board, right camera 3 cm higher, water 0.25 m: median vertical error per layer\n"
