@@ -18,8 +18,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TextIO
 
-import numpy as np
-
 from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike
 from .batch_job import finished_row, plan_jobs, run_pair
@@ -28,8 +26,9 @@ from .manifest import Manifest, load_manifest
 from .progress import Progress, format_seconds
 
 CSV_COLUMNS = ("test", "stage", "reference", "status", "seconds", "points", "submerged_fraction", "water_level_m",
-               "A_e_m2", "L_e_m", "d_e_m", "S", "S_sigma", "S_low", "S_high", "S_max", "E2D", "E3D", "eroded_volume_m3",
-               "accreted_volume_m3", "damage_level", "stretch_y_m", "active_zone_z_m", "error", "survey", "dem")
+               "A_e_m2", "L_e_m", "d_e_m", "S", "S_sigma", "S_low", "S_high", "S_max", "E2D", "E2D_low", "E2D_high",
+               "E3D", "E3D_low", "E3D_high", "eroded_volume_m3", "accreted_volume_m3", "damage_level", "stretch_y_m",
+               "active_zone_z_m", "error", "survey", "dem")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -270,24 +269,21 @@ def _rows_to_csv(rows: list[dict]) -> str:
 
 def _plot_tests(rows: list[dict], manifest: Manifest, out: Path) -> list[Path]:
     """One figure per test: S, E2D and E3D versus stage (the reference stage at zero)."""
-    from .plots import new_figure, save_figure
+    from .plots import plot_damage_versus_stage
     paths = []
     for test in manifest.tests():
         stages = [r for r in rows if r["test"] == test]
         if not any(r["status"] == "ok" for r in stages):
             continue
         names = [r["stage"] for r in stages]
-        fig, ax = new_figure(figsize=(6, 3.8))
-        for key, style, label in (("S", "o-", "S (averaged profile)"), ("E2D", "o-", "E2D"), ("E3D", "s--", "E3D")):
-            values = [0.0 if r["reference"] else r.get(key, np.nan) for r in stages]
-            ax.plot(names, values, style, label=label)
+        figures = {}
+        for key, label in (("S", "S (averaged profile)"), ("E2D", "E2D"), ("E3D", "E3D")):
+            values = [0.0 if r["reference"] else r.get(key) for r in stages]
+            intervals = [None if r["reference"] else (r.get(f"{key}_low"), r.get(f"{key}_high")) for r in stages]
+            figures[label] = (values, intervals)
         failed = [r["stage"] for r in stages if r["status"] == "failed"]
-        ax.set_title(f"Test {test}: damage versus stage" + (f" (failed: {', '.join(failed)})" if failed else ""))
-        ax.set_xlabel("stage")
-        ax.set_ylabel("damage parameter")
-        ax.grid(alpha=0.3)
-        ax.legend()
+        title = f"Test {test}: damage versus stage" + (f" (failed: {', '.join(failed)})" if failed else "")
         path = out / f"damage_vs_stage_{test}.png"
-        save_figure(fig, path)
+        plot_damage_versus_stage(path, names, figures, title)
         paths.append(path)
     return paths

@@ -197,8 +197,11 @@ def _damage_row(d, reference_dem, dem, out: Path, lap) -> dict:
     lap("damage report and figures (s)")
     a = result.averaged
     s_sigma = sigma.sigma["S"] if sigma is not None else None
-    s_low, s_high = (sigma.interval("S", a.S) if sigma is not None else None) or (None, None)
-    return dict(A_e_m2=a.A_e, L_e_m=a.L_e, d_e_m=a.d_e, S=a.S, S_sigma=s_sigma, S_low=s_low, S_high=s_high,
+    intervals = {}  # each figure's 95 % interval, None where unknown
+    for key, value in (("S", a.S), ("E2D", a.E2D), ("E3D", result.volumes.E3D)):
+        low, high = (sigma.interval(key, value) if sigma is not None else None) or (None, None)
+        intervals.update({f"{key}_low": low, f"{key}_high": high})
+    return dict(A_e_m2=a.A_e, L_e_m=a.L_e, d_e_m=a.d_e, S=a.S, S_sigma=s_sigma, **intervals,
                 S_max=result.S_max, E2D=a.E2D,
                 E3D=result.volumes.E3D, eroded_volume_m3=result.volumes.eroded_m3,
                 accreted_volume_m3=result.volumes.accreted_m3, damage_level=result.level,

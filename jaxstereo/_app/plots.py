@@ -52,6 +52,35 @@ def save_figure(fig, path, dpi: int = 120) -> None:
     write_bytes_atomic(path, figure_png(fig, dpi))
 
 
+def plot_damage_versus_stage(path, stages: list[str], figures: dict[str, tuple[list, list]], title: str) -> None:
+    """Damage figures versus stage, each with its 95 % interval as an error bar where it is known.
+
+    **Arguments:** `stages` the stages' names (x axis, in order); `figures` name -> `(values, intervals)`, one value
+    (dimensionless, NaN or None where not computed) and one `(low, high)` interval or None per stage; E3D is drawn
+    dashed with squares, the others solid with dots. Written to `path` (PNG) atomically.
+    """
+    fig, ax = new_figure(figsize=(6, 3.8))
+    stage_x = np.arange(len(stages))
+    for k, (name, (values, intervals)) in enumerate(figures.items()):
+        x = stage_x + 0.04 * (k - (len(figures) - 1) / 2)  # each figure a little aside: equal values' bars apart
+        y = np.array([np.nan if v is None else float(v) for v in values])
+        low, high = (np.array([np.nan if b is None or b[k] is None else float(b[k]) for b in intervals])
+                     for k in (0, 1))
+        bars = np.isfinite(y) & np.isfinite(low) & np.isfinite(high)
+        line, = ax.plot(x, y, "s--" if name == "E3D" else "o-", label=name)
+        if bars.any():
+            ax.errorbar(x[bars], y[bars], yerr=np.vstack([y[bars] - low[bars], high[bars] - y[bars]]), fmt="none",
+                        ecolor=line.get_color(), capsize=4)
+    ax.set_xticks(stage_x)
+    ax.set_xticklabels(stages)
+    ax.set_xlabel("stage")
+    ax.set_ylabel("damage parameter (bars: 95 % interval)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    save_figure(fig, path)
+
+
 def plot_calibration_errors(stereo, path, names: list[str] | None = None) -> None:
     """Bar chart of per-view reprojection RMS (left, right, stereo pairs), dropped views marked."""
     n = max([*stereo.left.views, *stereo.left.dropped, *stereo.right.views, *stereo.right.dropped,

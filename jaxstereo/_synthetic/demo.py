@@ -15,7 +15,7 @@ import numpy as np
 
 from .._app.images import write_image
 from .._app.io import write_text_atomic
-from .._app.plots import new_figure, plot_calibration_errors, save_figure
+from .._app.plots import plot_calibration_errors, plot_damage_versus_stage
 from .._calibration.boards import BoardSpec
 from .._calibration.calibration import calibrate_stereo, detect_all, world_frame_rig
 from .._calibration.detect import detect_board
@@ -177,17 +177,14 @@ def _damage(out: Path, stages, dems) -> dict:
 
 
 def _plot_damage_vs_stage(damage: dict, path):
-    names = ["I", *damage]
-    fig, ax = new_figure(figsize=(6, 3.8))
-    for key, label in (("S", "S (averaged profile)"), ("E2D", "E2D")):
-        ax.plot(names, [0.0] + [d["averaged_profile"][key] for d in damage.values()], "o-", label=label)
-    ax.plot(names, [0.0] + [np.nan if d["E3D"] is None else d["E3D"] for d in damage.values()], "s--", label="E3D")
-    ax.set_xlabel("stage")
-    ax.set_ylabel("damage parameter")
-    ax.set_title("Damage versus stage")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    save_figure(fig, path)
+    """S (of the averaged profile), E2D and E3D of each stage against stage I (zero there), with their 95 %
+    intervals."""
+    figures = {}
+    for key, label in (("S", "S (averaged profile)"), ("E2D", "E2D"), ("E3D", "E3D")):
+        values = [d["averaged_profile"][key] if key in d["averaged_profile"] else d[key] for d in damage.values()]
+        intervals = [(d.get("interval_95") or {}).get(key) for d in damage.values()]
+        figures[label] = ([0.0, *values], [None, *intervals])
+    plot_damage_versus_stage(path, ["I", *damage], figures, "Damage versus stage")
 
 
 def _report_markdown(s: dict) -> str:

@@ -85,6 +85,11 @@ def test_batch_matches_ground_truth_logs_failures_and_skips_finished_pairs(campa
         # E3D (a Dn50 disc's mean depth at the deepest place) within 20 %: at 864 px a 31 px sub-pixel patch spans
         # 8 cm, 2 Dn50, and deepens the small stage-II hole's edges a little (1.45 against 1.25).
         assert abs(float(row["E3D"]) - t.volumes.E3D) <= 0.20 * t.volumes.E3D, (stage, row["E3D"], t.volumes.E3D)
+        # The 95 % intervals (the figure's error bars) hold the measured value and the truth (both stages: S 0.54-0.76
+        # and 1.30-1.73 for 0.63 and 1.54; E3D 1.01-1.53 and 2.05-2.85 for 1.25 and 2.43).
+        for key, true in (("S", t.averaged.S), ("E2D", t.averaged.E2D), ("E3D", t.volumes.E3D)):
+            low, high = float(row[f"{key}_low"]), float(row[f"{key}_high"])
+            assert 0 <= low < float(row[key]) < high and low <= true <= high, (stage, key, low, high, true)
     assert float(rows[("T01", "III")]["S"]) > float(rows[("T01", "II")]["S"]) > 0
     for test in ("T01", "T02"):
         assert (out / f"damage_vs_stage_{test}.png").read_bytes()[:4] == b"\x89PNG"
