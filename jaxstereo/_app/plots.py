@@ -64,8 +64,8 @@ def plot_damage_versus_stage(path, stages: list[str], figures: dict[str, tuple[l
     for k, (name, (values, intervals)) in enumerate(figures.items()):
         x = stage_x + 0.04 * (k - (len(figures) - 1) / 2)  # each figure a little aside: equal values' bars apart
         y = np.array([np.nan if v is None else float(v) for v in values])
-        low, high = (np.array([np.nan if b is None or b[k] is None else float(b[k]) for b in intervals])
-                     for k in (0, 1))
+        low, high = (np.array([np.nan if b is None or b[end] is None else float(b[end]) for b in intervals])
+                     for end in (0, 1))
         bars = np.isfinite(y) & np.isfinite(low) & np.isfinite(high)
         line, = ax.plot(x, y, "s--" if name == "E3D" else "o-", label=name)
         if bars.any():
