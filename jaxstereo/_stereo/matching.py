@@ -144,7 +144,7 @@ def _cross_check(disparity, right_disparity, tolerance_px):
 
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray | None = None,
-                     window: int = 31, small_window: int | None = 9, sigma_window: int = 5,
+                     window: int = 47, small_window: int | None = 9, sigma_window: int = 5,
                      subpixel: bool = True, with_sigma: bool = True, waterline: np.ndarray | None = None) -> Subpixel:
     """Sub-pixel disparities by Lucas-Kanade over a `window` x `window` patch, from whole-pixel bases, and
     each disparity's standard deviation from the fit's own residuals.
@@ -170,10 +170,15 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     to 1.39), and on the same flume resampled to 0.75 of its pixels, where the patches span more of each rock,
     from 2.47 to 2.07 mm (1.94 from 2.29); the nadir board's RMSE moves from 1.14 to 1.17 mm. (11 px: 1.52 and
     2.18 mm; 7 px: 1.54 and 2.02 mm, the board 1.23 mm. Both patches smaller, 15 and 7 px: the rubble 1.44 mm
-    but the board 1.85 mm, as the agreement test then has no patch large enough for its weak texture.) (A 63 px
-    patch costs the same box sums and brings the boards' submerged RMSE to 0.87 mm (nadir) and 0.44 mm (oblique),
-    the rubble unchanged, but the fit's std then no longer describes the error: per 5 cm layer the predicted RMS is
-    0.64-1.71 of the measured, against 0.77-1.27 at 31 px. See `MATCH_NOISE_SCALE`.)
+    but the board 1.85 mm, as the agreement test then has no patch large enough for its weak texture.) The large
+    patch is 47 px since round 53 (31 before; the box sums cost the same, the bands' overlap a little more): a
+    smooth surface averages more noise, and on curved ones the patch is planar less often, so that the 9 px one
+    takes over there. On the POV-Ray flume the boards' submerged RMSE falls from 1.17 to 0.97 mm (nadir) and from
+    0.66 to 0.52 mm (oblique), the wet rubble's submerged MAE from 1.50 to 1.42 mm (grey rock 1.39 to 1.32), the
+    wet and dry surveys' median difference from 0.97 to 0.93 mm; on its dry rubble, against true disparities, the
+    share of pixels off by more than 1 px stays (6.84 against 6.83 %) and the others' mean error falls from 0.153
+    to 0.145 px. (63 px: the boards 0.92 and 0.47 mm, the rubble 1.40 mm, but the nadir board's deepest layer
+    predicted 0.69 of its RMS error; see `MATCH_NOISE_SCALE`.)
     A match that no patch fit could refine and whose own SGBM disparity lies off the plane of its patch
     (further from the plane's value at the centre than `OFF_PLANE_SPREADS` times the patch's spread and than
     `MAX_SPREAD_PX`) is flagged `off_surface`: its neighbours define a smooth surface it does not lie on, and the
@@ -351,7 +356,7 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, u, v, shift: float, window:
         noise = np.sqrt(np.maximum(sigma_small**2 - large_sigma**2, 0.0))
         use_small = keep_small & (~keep | ~(np.abs(refined - small) <= WINDOW_AGREEMENT * noise))
         if with_sigma and straddles is not None:
-            kink = _window_offset(small, refined, keep & keep_small, small_window)
+            kink = _window_offset(small, refined, keep & keep_small, noise**2, small_window)
         refined = np.where(use_small, small, refined)
         if sigma_refined is not None:
             sigma_refined = np.where(use_small, sigma_small, sigma_refined)
@@ -519,12 +524,21 @@ def _window_mean(values, where, window: int):
     return cv2.boxFilter(np.where(where, values, np.float32(0.0)), -1, box, normalize=False) / count, count
 
 
-def _window_offset(small, large, both, window: int):
-    """The magnitude of the mean of `small - large` (pixels) over each `window` x `window` square, taken where
-    `both` fits were kept (h, w); 0 where no pixel of the square kept both: how far the large patch's fit lies from
-    the small one's around a pixel. Across a kink of the disparity (the waterline) that is the large patch's bias,
-    plus the small fit's own noise, which is not taken out: the bound it gives is on the safe side."""
-    return np.abs(_window_mean(small - large, both, window)[0])
+def _window_offset(small, large, both, noise_variance, window: int):
+    """How far the large patch's fit lies from the small one's around a pixel (pixels, (h, w), >= 0): the mean of
+    `small - large` over each `window` x `window` square, taken where `both` fits were kept, less the part the
+    small fit's own noise explains (`noise_variance` (h, w) px^2, the variance of `small - large` at each pixel,
+    averaged over the same pixels: the fits of neighbouring small patches share most of their pixels, so their
+    noise does not average out over the square); 0 where no pixel of the square kept both. Across a kink of the
+    disparity (the waterline) what is left is the large patch's bias. With the noise left in, a 47 px large patch
+    over a 9 px small one predicted 1.6 times the oblique board's measured RMS error in the 5 cm layer holding the
+    waterline (1.37 times the nadir board's); with it taken out, 1.2 and 0.9 times, 95 and 92 % of the points within
+    2 sigma."""
+    mean, _ = _window_mean(small - large, both, window)
+    # Beyond 1 px^2 the variance takes out all the mean can hold (the fits stay within 1 px of SGBM's): clipped, so
+    # that the box filter's running sums keep their precision
+    noise, _ = _window_mean(np.minimum(noise_variance, np.float32(1.0)), both, window)
+    return np.sqrt(np.maximum(mean**2 - noise, 0.0))
 
 
 def _disagreement(sgbm, refined, keep, sigma_sgbm, window: int, block: int):
@@ -543,10 +557,12 @@ def _disagreement(sgbm, refined, keep, sigma_sgbm, window: int, block: int):
 # 4.0 while the two linearisations were blended after the window sums (their noise was not in the formula);
 # with the blend inside the sums no single factor fits both rigs within 30 %: the nadir board asks for 1.9 or
 # more (its predicted RMS 0.72-0.89 of the measured at 1.9), the oblique for 1.85 or less (1.02-1.31 at 1.9).
-# 2.0 errs on the side of the larger error bars. The factor holds for 31 px patches only: over 63 px patches the
-# nadir board's deepest layer measured 1.00 mm RMS against 0.65 predicted (its refined points alone 0.81 against
-# 0.59) while the oblique board's predicted RMS was 1.3-1.7 times its measured, most of it the estimators'
-# disagreement, which a 63 px mean no longer shrinks to zero there (median 0.26 mm; 0 at 31 px).
+# 2.0 errs on the side of the larger error bars. The factor holds for 31 and 47 px patches (over 47 px the nadir
+# board's layers predicted 0.72-0.91 of their RMS error, the oblique board's 0.87-1.31), not over 63 px: the
+# errors shrink less than the least-squares std as the patch grows (0.97 and 0.92 mm against 1.17 mm on the nadir
+# board at 47 and 63 px against 31), and there the nadir board's deepest layer predicted 0.69 of its RMS error
+# while the oblique board's layers predicted up to 1.35 times theirs, much of it the estimators' disagreement,
+# which a 63 px mean no longer shrinks to zero.
 MATCH_NOISE_SCALE = 2.0
 SGBM_NOISE_SCALE = 1.4
 # On the POV-Ray flume's dry breakwater (true disparities ray-cast from its 1 mm surface), where the patch fit

@@ -46,7 +46,10 @@ TABLE_STEP_PX = 96  # table spacing in u and v (pixels)
 TABLE_STEP_DISPARITY_PX = 8  # and in disparity
 INTERPOLATION_CHUNK = 1 << 17  # matches per compiled interpolation call
 TABLE_CHANNELS = 10  # the shared covariance's 6 terms, its water level part, the point's derivative (3)
-MATCH_CORRELATION_PX = 31  # matches closer than the sub-pixel fit's window share most of it: their errors correlate
+# Matches closer than this share most of their sub-pixel fit's patch: their errors correlate. 31 px, the large patch
+# until round 53, with which the damage's error bars were measured; the large patch is 47 px now (where the surface
+# is smooth; the 9 px one on curved rubble), and this width was not measured again.
+MATCH_CORRELATION_PX = 31
 
 
 @dataclasses.dataclass(frozen=True)
