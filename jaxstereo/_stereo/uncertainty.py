@@ -46,10 +46,11 @@ TABLE_STEP_PX = 96  # table spacing in u and v (pixels)
 TABLE_STEP_DISPARITY_PX = 8  # and in disparity
 INTERPOLATION_CHUNK = 1 << 17  # matches per compiled interpolation call
 TABLE_CHANNELS = 10  # the shared covariance's 6 terms, its water level part, the point's derivative (3)
-# Matches closer than this share most of their sub-pixel fit's patch: their errors correlate. 31 px, the large patch
-# until round 53, with which the damage's error bars were measured; the large patch is 47 px now (where the surface
-# is smooth; the 9 px one on curved rubble), and this width was not measured again.
-MATCH_CORRELATION_PX = 31
+# Matches closer than this share most of their sub-pixel fit's patch: their errors correlate. The large patch's
+# width (`ReconstructOptions.subpixel_window`). Measured on the POV-Ray flume's board, the height errors' correlation
+# along rows and columns falls to zero at 32 px with a 31 px patch and at about 45 px with 47; on curved rubble,
+# where the 9 px patch fits, it is 0.08 at 8 px already, so there the damage's error bars are generous.
+MATCH_CORRELATION_PX = 47
 
 
 @dataclasses.dataclass(frozen=True)

@@ -184,8 +184,19 @@ def test_grid_survey_keeps_the_sources_apart():
     np.testing.assert_allclose(dem.sigma_match[ok], 0.002, rtol=1e-6)
     np.testing.assert_allclose(dem.sigma_level[ok], 0.0005, rtol=1e-6)
     np.testing.assert_allclose(dem.sigma_calibration[ok], 0.001, rtol=1e-4)
-    assert dem.correlation_m == pytest.approx(31 * 2.0 / 2000.0, rel=1e-3)  # the window at 2 m
+    assert dem.correlation_m == pytest.approx(47 * 2.0 / 2000.0, rel=1e-3)  # the large sub-pixel patch at 2 m
     assert dataclasses.replace(dem).has_sigma
+
+
+def test_the_errors_correlation_width_is_the_large_sub_pixel_patch():
+    """The grid's and the damage's correlation width (`MATCH_CORRELATION_PX`) is the large sub-pixel patch: on the
+    POV-Ray flume's board the height errors' correlation falls to zero at the patch's width (32 px with 31, about
+    45 px with 47). In round 53 the patch grew to 47 px while the width stayed 31 px, and two profiles' A_e intervals
+    at the development flume's stage II missed the truth."""
+    from jaxstereo import ReconstructOptions
+    from jaxstereo._stereo.uncertainty import MATCH_CORRELATION_PX
+
+    assert MATCH_CORRELATION_PX == ReconstructOptions().subpixel_window
 
 
 def test_true_S_lies_within_two_sigma_on_a_synthetic_trial():
