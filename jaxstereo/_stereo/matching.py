@@ -353,10 +353,11 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, u, v, shift: float, window:
                                        small_window, channels, True, u, v, above)
         small, sigma_small, keep_small = small_fit.refined, small_fit.sigma, small_fit.kept
         large_sigma = sigma_refined if sigma_refined is not None else np.zeros_like(small)
-        noise = np.sqrt(np.maximum(sigma_small**2 - large_sigma**2, 0.0))
+        noise_variance = np.maximum(sigma_small**2 - large_sigma**2, 0.0)  # of the two fits' difference (px^2)
+        noise = np.sqrt(noise_variance)
         use_small = keep_small & (~keep | ~(np.abs(refined - small) <= WINDOW_AGREEMENT * noise))
         if with_sigma and straddles is not None:
-            kink = _window_offset(small, refined, keep & keep_small, noise**2, small_window)
+            kink = _window_offset(small, refined, keep & keep_small, noise_variance, small_window)
         refined = np.where(use_small, small, refined)
         if sigma_refined is not None:
             sigma_refined = np.where(use_small, sigma_small, sigma_refined)
