@@ -163,3 +163,48 @@ def test_distorted_flume_moves_pixels_as_its_lens_says(tmp_path):
         expected = expected.ravel()
         assert np.abs(centroid - expected).max() < 0.05, (side, centroid, expected)
         assert np.abs(centroid - (np.asarray(truth["K"]) @ ray)[:2]).max() > 0.5  # the lens's move is there to see
+
+
+def test_real_pair_scores_each_estimate_against_the_true_disparity(tmp_path):
+    """`real_pair`: on a textured pair whose right image is the left one moved by a known inclined disparity (the
+    truth written as Middlebury's bottom-up PFM), SGBM matches nearly every pixel, the sub-pixel step's values lie
+    closer to the truth than SGBM's own, and the table's figures are the errors recomputed from its estimates."""
+    import cv2
+    import numpy as np
+
+    from experiments._common import Output
+    from experiments.real_pair import evaluate, main, read_disparity, score
+
+    rng = np.random.default_rng(3)
+    h, w = 120, 200
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (h, w + 40, 3)).astype(np.float32), (0, 0), 1.2)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    truth = (14.3 + 0.01 * xx + 0.006 * yy).astype(np.float32)
+    left = np.clip(texture[:, 20:20 + w], 0, 255).astype(np.uint8)
+    # the right image sees the left pixel x at x - d: R(x - d) = L(x), so R(x') = L(x' + d) with d taken at x'
+    right_map = xx + 20 + (14.3 + 0.01 * xx + 0.006 * yy) / (1 - 0.01)
+    right = np.clip(cv2.remap(texture, right_map, yy, cv2.INTER_CUBIC), 0, 255).astype(np.uint8)
+    pfm = tmp_path / "disp0.pfm"
+    pfm.write_bytes(b"Pf\n%d %d\n-1.0\n" % (w, h) + truth[::-1].astype("<f4").tobytes())
+    assert np.array_equal(read_disparity(pfm), truth)
+    rows, estimates = evaluate(left, right, read_disparity(pfm), Output(tmp_path, "real-pair"))
+    scored = estimates["scored"]
+    assert scored[:, 40:].mean() > 0.9  # right of the search range's start, nearly every pixel matched
+    by_name = {row[0]: row for row in rows}
+    sgbm = score(estimates["SGBM's own sub-pixel values"], truth, scored)
+    shipped = score(estimates["sub-pixel step as shipped (47 px, 9 px)"], truth, scored)
+    assert sgbm["bad_percent"] < 1.0 and shipped["bad_percent"] < 1.0
+    assert shipped["mean_abs_rest_px"] < 0.05 < sgbm["mean_abs_rest_px"]
+    assert by_name["SGBM's own sub-pixel values"][3] == f"{sgbm['mean_abs_rest_px']:.3f}"
+    error = np.abs(estimates["SGBM's own sub-pixel values"] - truth)[scored]
+    assert sgbm["bad_percent"] == 100 * np.mean(error > 1) and sgbm["pixels"] == scored.sum()
+    with pytest.raises(SystemExit, match="one size"):
+        evaluate(left, right[:, 1:], truth, Output(tmp_path, "real-pair"))
+    for name, image in (("left.png", left), ("right.png", right)):
+        cv2.imwrite(str(tmp_path / name), image[..., ::-1])
+    np.save(tmp_path / "truth.npy", truth)
+    assert main([str(tmp_path / "left.png"), str(tmp_path / "right.png"), str(tmp_path / "truth.npy"),
+                 "--out", str(tmp_path / "out")]) == 0
+    table = (tmp_path / "out" / "real-pair" / "table.md").read_text()
+    assert "| " + by_name["SGBM's own sub-pixel values"][3] + " |" in table
+    assert (tmp_path / "out" / "real-pair" / "real_pair.png").read_bytes()[:4] == b"\x89PNG"
