@@ -134,7 +134,7 @@ def evaluate(left: np.ndarray, right: np.ndarray, truth: np.ndarray, out: Output
 
 def plot(path: Path, truth: np.ndarray, estimates: dict) -> None:
     """Each estimate's absolute error map (px, clipped at 1) and its mean signed error against the true disparity's
-    fraction (the SGBM's pixel locking), on the pixels scored."""
+    fraction (SGBM's pixel locking), on the pixels scored."""
     from jaxstereo._app.plots import new_figure, save_figure
 
     scored = estimates["scored"]
@@ -149,7 +149,8 @@ def plot(path: Path, truth: np.ndarray, estimates: dict) -> None:
         ax.set_axis_off()
         signed = estimates[name] - truth
         inside = scored & (np.abs(signed) <= 1)
-        means = [np.mean(signed[inside & (fraction >= a) & (fraction < b)]) for a, b in itertools.pairwise(edges)]
+        bins = [signed[inside & (fraction >= a) & (fraction < b)] for a, b in itertools.pairwise(edges)]
+        means = [values.mean() if values.size else np.nan for values in bins]  # an empty bin: no point
         axes[-1].plot(0.5 * (edges[:-1] + edges[1:]), means, "o-", label=name)
     fig.colorbar(image, ax=list(axes[:-1]), label="|error| (px, clipped at 1)", shrink=0.8)
     axes[-1].axhline(0, color="grey", lw=0.8)
