@@ -26,12 +26,13 @@ import itertools
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: `experiments` and the checkout
 
 from experiments._common import Output
+from jaxstereo._app.images import read_image
+from jaxstereo._geometry.errors import JaxStereoError
 from jaxstereo._stereo.matching import (
     MatchOptions,
     disparity_search_range,
@@ -81,10 +82,11 @@ def _read_pfm(path: Path) -> np.ndarray:
 
 
 def _read_image(path: Path) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise SystemExit(f"{path}: not an image OpenCV can read")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    """The image at `path` as uint8 RGB (h, w, 3), read as the survey's commands read it."""
+    try:
+        return read_image(path)
+    except JaxStereoError as err:
+        raise SystemExit(str(err)) from None
 
 
 def score(estimate: np.ndarray, truth: np.ndarray, where: np.ndarray, sigma: np.ndarray | None = None) -> dict:
