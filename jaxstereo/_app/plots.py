@@ -12,13 +12,27 @@ def import_matplotlib_in_background() -> None:
 
     For a command that draws a figure after seconds of numerical work: the import (about 0.4 s) overlaps
     that work instead of adding to it. Importing the same modules later simply waits for this import.
+
+    The cyclic garbage collector is off while it imports. Loading a compiled extension holds the C library's
+    loader lock, and matplotlib's font module creates Python objects while it loads; a collection there ran JAX's
+    Python callback (`gc.callbacks`), which let another thread take the GIL, and numpy on that thread waited for
+    the loader lock (`dladdr`, when it checks whether it may reuse a temporary) while the import waited for the
+    GIL: a `jaxstereo reconstruct` of the POV-Ray flume's board hung there (round 56, seen with gdb). Without a
+    collection no Python code runs inside the load, and the importing thread keeps the GIL until it is done.
     """
+    import gc
     import importlib
     import threading
 
     def load():
-        for name in ("matplotlib.figure", "matplotlib.backends.backend_agg"):
-            importlib.import_module(name)
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            for name in ("matplotlib.figure", "matplotlib.backends.backend_agg"):
+                importlib.import_module(name)
+        finally:
+            if collecting:
+                gc.enable()
 
     threading.Thread(target=load, name="import-matplotlib", daemon=True).start()
 
