@@ -3,13 +3,14 @@
 
 The issue that asked for the sub-pixel step judges it on a real photographed pair with a true disparity, where an
 early refinement raised the share of pixels off by more than 1 px and the mean error of the others. This runs the
-survey's matching (`sgbm_disparity`, colour, over the true disparities' range and the usual margin) on such a pair,
-then the sub-pixel step as shipped (47 px patch, 9 px where the two disagree), the 47 px patch alone, and SGBM's own
-values, and scores each against the truth on the same pixels (those SGBM matched and the truth knows):
+survey's matching (`match_rectified`: colour SGBM over the true disparities' range and the usual margin, the right
+image's levels mapped onto the left's and the pair matched again) on such a pair, then the sub-pixel step as shipped
+(47 px patch, 9 px where the two disagree), the 47 px patch alone, and SGBM's own values, and scores each against the
+truth on the same pixels (those SGBM matched and the truth knows):
 
     python experiments/real_pair.py LEFT RIGHT TRUE_DISPARITY [--out DIR]
 
-LEFT and RIGHT are rectified images (any format OpenCV reads); TRUE_DISPARITY is the left image's disparity in
+LEFT and RIGHT are rectified images (any format the commands read); TRUE_DISPARITY is the left image's disparity in
 pixels (`x_right = x_left - d`), as a Middlebury `.pfm`, a `.npy` or an `.npz` (its first array), non-finite or
 0 where unknown. Middlebury's Motorcycle pair at a quarter of its resolution ships inside scikit-image's wheel
 (`skimage/data/motorcycle_left.png`, `motorcycle_right.png`, `motorcycle_disp.npz`). Writes `table.md`, `table.csv`
@@ -33,12 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script:
 from experiments._common import Output
 from jaxstereo._app.images import read_image
 from jaxstereo._geometry.errors import JaxStereoError
-from jaxstereo._stereo.matching import (
-    MatchOptions,
-    disparity_search_range,
-    refine_disparity,
-    sgbm_disparity,
-)
+from jaxstereo._stereo.match_ahead import match_rectified
+from jaxstereo._stereo.matching import MatchOptions, disparity_search_range, refine_disparity
 
 ROOT = Path(__file__).resolve().parent
 
@@ -116,7 +113,9 @@ def evaluate(left: np.ndarray, right: np.ndarray, truth: np.ndarray, out: Output
     first, count = disparity_search_range(float(truth[known].min()), float(truth[known].max()),
                                           MatchOptions().margin_px)
     out.log(f"SGBM over disparities {first} to {first + count} px")
-    sgbm = sgbm_disparity(left, right, first, count, MatchOptions())
+    right, sgbm, exposure = match_rectified(left, right, (first, count), MatchOptions(), colour=True)
+    if exposure is not None and exposure.applied:
+        out.log("the right image's levels mapped onto the left's and the pair matched again, as the survey does")
     scored = known & np.isfinite(sgbm)
     if not scored.any():
         raise SystemExit("SGBM matched no pixel whose true disparity is known")

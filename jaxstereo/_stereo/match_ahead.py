@@ -69,13 +69,25 @@ def match_rectifying(left_image: np.ndarray, right_image: np.ndarray, maps, sear
     then mapped onto the left's at the matches found (`match_exposure`); where that changes them, the pair is
     matched again, and `Matched.right` is the mapped image."""
     rect_l, rect_r = remap(left_image, maps[0]), remap(right_image, maps[1])
+    rect_r, disparity, exposure = match_rectified(rect_l, rect_r, search, options, colour)
+    return Matched(rect_l, rect_r, disparity, maps[0], exposure)
+
+
+def match_rectified(rect_l: np.ndarray, rect_r: np.ndarray, search: tuple[int, int], options: MatchOptions,
+                    colour: bool) -> tuple[np.ndarray, np.ndarray, ExposureMatch | None]:
+    """Match a rectified pair (h, w[, 3]) uint8 as the survey does: SGBM over `search` (first disparity, count)
+    pixels, on colour or grey (see `match_rectifying`), then with `options.match_exposure` the right image's grey
+    levels mapped onto the left's at those matches, and the pair matched again where the map changed them.
+
+    **Returns:** `(right, disparity, exposure)`: the right image as matched (mapped or as given), SGBM's disparity
+    (h, w) float32 pixels (NaN: no match) and the exposure map (None: not asked for)."""
     disparity = _sgbm(rect_l, rect_r, search, options, colour)
     exposure = None
     if options.match_exposure:
         rect_r, exposure = match_exposure(rect_l, rect_r, disparity)
         if exposure.applied:
             disparity = _sgbm(rect_l, rect_r, search, options, colour)
-    return Matched(rect_l, rect_r, disparity, maps[0], exposure)
+    return rect_r, disparity, exposure
 
 
 def _sgbm(rect_l: np.ndarray, rect_r: np.ndarray, search: tuple[int, int], options: MatchOptions,

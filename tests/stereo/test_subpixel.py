@@ -54,13 +54,36 @@ def test_the_small_patch_follows_a_curved_surface_the_large_one_smooths():
 def test_sgbm_block_keeps_the_patch_fit_from_leaving_a_correct_match(monkeypatch):
     """Where the 31 px patch straddles the bump it pulls the fit off the (correct) start; SGBM's own 5 x 5 block
     then fits the refined value far worse than its own and the start stands: 0.36 px RMS on the bump without
-    the check, 0.16 with it (with the 15 px patch too: 0.18 and 0.15)."""
+    the check, 0.16 with it (with the 15 px patch too: 0.18 and 0.15). Measured without the bound on the moves,
+    which does part of the same work (see the next test)."""
     left, right, start, truth = _bumped_pair()
+    monkeypatch.setattr(matching, "MOVE_SIGMAS", 1e9)
     checked = _rms(left, right, start, truth, None)
     monkeypatch.setattr(matching, "BLOCK_FIT_SIGMAS", 1e9)  # no check
     unchecked = _rms(left, right, start, truth, None)
     assert checked[0] < 0.5 * unchecked[0]
     assert checked[1] <= 1.01 * unchecked[1]  # the flat part's refinement kept
+
+
+def test_a_fit_moves_no_further_from_sgbm_than_its_bound(monkeypatch):
+    """Each refined value lies within 2 of SGBM's own standard deviations of SGBM's value, and a small patch's
+    within half a pixel too; the fits pulled off the bump's correct starts are held there (with the check against
+    SGBM's block turned off, 0.36 px RMS on the bump unbounded, 0.20 px bounded, measured), while the flat part
+    keeps most of its refinement (0.009 px RMS left of the start's 0.1 px, 0.002 px unbounded: SGBM's block's
+    standard deviation, a median 0.11 px there, is below the start's error at some pixels and holds them back)."""
+    left, right, start, truth = _bumped_pair()
+    sgbm_sigma = refine_disparity(left, right, start, subpixel=False).sigma
+    large, both = (refine_disparity(left, right, start, window=31, small_window=s).disparity for s in (None, 15))
+    for refined in (large, both):
+        assert np.all(np.abs(refined - start) <= matching.MOVE_SIGMAS * sgbm_sigma + 1e-5)
+    far = np.abs(both - start) > matching.MAX_MOVE_PX + 1e-5
+    assert np.array_equal(both[far], large[far])  # only the large patch's values move further
+    monkeypatch.setattr(matching, "BLOCK_FIT_SIGMAS", 1e9)
+    bounded = _rms(left, right, start, truth, None)
+    monkeypatch.setattr(matching, "MOVE_SIGMAS", 1e9)
+    unbounded = _rms(left, right, start, truth, None)
+    assert bounded[0] < 0.7 * unbounded[0]
+    assert bounded[1] < 0.02
 
 
 RAMP = (0.07, 0.03)  # disparity slopes (px per px along u, v): a surface inclined to the image
