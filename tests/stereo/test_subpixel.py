@@ -66,24 +66,24 @@ def test_sgbm_block_keeps_the_patch_fit_from_leaving_a_correct_match(monkeypatch
 
 
 def test_a_fit_moves_no_further_from_sgbm_than_its_bound(monkeypatch):
-    """Each refined value lies within 2 of SGBM's own standard deviations of SGBM's value, and a small patch's
-    within half a pixel too; the fits pulled off the bump's correct starts are held there (with the check against
-    SGBM's block turned off, 0.36 px RMS on the bump unbounded, 0.20 px bounded, measured), while the flat part
-    keeps most of its refinement (0.009 px RMS left of the start's 0.1 px, 0.002 px unbounded: SGBM's block's
-    standard deviation, a median 0.11 px there, is below the start's error at some pixels and holds them back)."""
+    """Each refined value lies within 2 of SGBM's own standard deviations (or 0.3 px) of SGBM's value, and a small
+    patch's within half a pixel too; the fits pulled off the bump's correct starts are held there (with the check
+    against SGBM's block turned off, 0.36 px RMS on the bump unbounded, 0.24 px bounded, measured), while the flat
+    part keeps its refinement (0.0025 px RMS left of the start's 0.1 px, 0.0019 px unbounded)."""
     left, right, start, truth = _bumped_pair()
     sgbm_sigma = refine_disparity(left, right, start, subpixel=False).sigma
     large, both = (refine_disparity(left, right, start, window=31, small_window=s).disparity for s in (None, 15))
     for refined in (large, both):
-        assert np.all(np.abs(refined - start) <= matching.MOVE_SIGMAS * sgbm_sigma + 1e-5)
+        bound = np.maximum(matching.MOVE_SIGMAS * sgbm_sigma, matching.MIN_MOVE_PX)
+        assert np.all(np.abs(refined - start) <= bound + 1e-5)
     far = np.abs(both - start) > matching.MAX_MOVE_PX + 1e-5
     assert np.array_equal(both[far], large[far])  # only the large patch's values move further
     monkeypatch.setattr(matching, "BLOCK_FIT_SIGMAS", 1e9)
     bounded = _rms(left, right, start, truth, None)
     monkeypatch.setattr(matching, "MOVE_SIGMAS", 1e9)
     unbounded = _rms(left, right, start, truth, None)
-    assert bounded[0] < 0.7 * unbounded[0]
-    assert bounded[1] < 0.02
+    assert bounded[0] < 0.8 * unbounded[0]
+    assert bounded[1] < 0.01
 
 
 RAMP = (0.07, 0.03)  # disparity slopes (px per px along u, v): a surface inclined to the image
