@@ -185,19 +185,19 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     aggregated cost, which a patch of 81 pixels across curved relief is not placed to overrule); a fit beyond its
     bound is moved back onto it, and its standard deviation is at least SGBM's (taken as the bound's own, it
     predicted 1.47 times the oblique board's RMS error in a 5 cm layer; as the fit's, 0.71 of the nadir board's
-    deepest layer; SGBM's: 0.79-0.98 and 0.93-1.34 of the two boards' layers). On a real photographed pair
-    (Middlebury's Motorcycle, 741x500, matched as the survey does) the fits that moved 0.5-1 px from SGBM's values,
-    most of them the small patch's, were closer to the truth in 30 % of those pixels only: unbounded, the step left
-    5.76 % of the pixels off by more than 1 px and the others 0.204 px off on average (SGBM's own values 5.13 % and
-    0.201 px); bounded, 5.35 % and 0.194 px. On the POV-Ray flume's dry rubble, where SGBM's values are noisier, it
-    changes little (6.83 % and 0.145 px unbounded, 6.77 % and 0.144 px bounded; SGBM 7.21 % and 0.238 px), nor the
-    flume's survey figures. (Measured before the floor below was added: bounded at one standard deviation, the
-    Motorcycle 5.25 % and 0.185 px, but the nadir board's submerged RMSE 1.25 mm against 0.97; the half pixel for the
-    large patch too: the Motorcycle 5.30 % and 0.192 px, the board 1.07 mm.) The floor is for images with little
-    noise, where SGBM's block fits its values well and its standard deviation is small while its values still lock
-    onto whole pixels: without it the project's own rendered board (`tests/stereo/test_reconstruct.py`) had a 5 cm
-    layer 1.14 mm off (bound 0.5 mm); 0.2 px left the submerged RMSE of its deep-water rig 1.03 mm (bound 1.0); 0.3
-    px meets both.
+    deepest layer, both before the floor below; SGBM's: 0.79-0.98 and 0.93-1.34 of the two boards' layers). On a real
+    photographed pair (Middlebury's Motorcycle, 741x500, matched as the survey does) the fits that moved 0.5-1 px
+    from SGBM's values, most of them the small patch's, were closer to the truth in 30 % of those pixels only:
+    unbounded, the step left 5.76 % of the pixels off by more than 1 px and the others 0.204 px off on average
+    (SGBM's own values 5.13 % and 0.201 px); bounded, 5.35 % and 0.194 px. On the POV-Ray flume's dry rubble, where
+    SGBM's values are noisier, it changes little (6.83 % and 0.145 px unbounded, 6.77 % and 0.144 px bounded; SGBM
+    7.21 % and 0.238 px), nor the flume's survey figures. (Measured before the floor below was added: bounded at one
+    standard deviation, the Motorcycle 5.25 % and 0.185 px, but the nadir board's submerged RMSE 1.25 mm against
+    0.97; the half pixel for the large patch too: the Motorcycle 5.30 % and 0.192 px, the board 1.07 mm.) The floor
+    is for images with little noise, where SGBM's block fits its values well and its standard deviation is small
+    while its values still lock onto whole pixels: without it the project's own rendered board
+    (`tests/stereo/test_reconstruct.py`) had a 5 cm layer 1.14 mm off (bound 0.5 mm); 0.2 px left the submerged RMSE
+    of its deep-water rig 1.03 mm (bound 1.0); 0.3 px meets both.
     A match that no patch fit could refine and whose own SGBM disparity lies off the plane of its patch
     (further from the plane's value at the centre than `OFF_PLANE_SPREADS` times the patch's spread and than
     `MAX_SPREAD_PX`) is flagged `off_surface`: its neighbours define a smooth surface it does not lie on, and the
