@@ -76,7 +76,11 @@ def cached_tables(name: str, inputs, compute: Callable[[], dict[str, np.ndarray]
 
 def table_key(name: str, inputs) -> str:
     """The hex SHA-256 of `name`, jaxstereo's source and the values, dtypes and shapes of `inputs`' leaves
-    with the PyTree's structure (static fields such as a rectification's mode and size included)."""
+    with the PyTree's structure (static fields such as a rectification's mode and size included).
+
+    Floating-point values (arrays and numbers alike) are hashed to `KEY_BITS` significant bits (`_quantised`), not
+    to their last bit: a rectification computed from the same rig can differ in its last bits between processes
+    (XLA on a GPU picks its kernels per process by timing them), and its key must not."""
     import jax  # here: the module is imported before JAX by the command line (`match_ahead.py`)
 
     leaves, structure = jax.tree_util.tree_flatten(inputs)
@@ -84,13 +88,31 @@ def table_key(name: str, inputs) -> str:
     h.update(name.encode())
     h.update(str(structure).encode())
     for leaf in leaves:
-        if isinstance(leaf, (str, bool, int, float)):
+        if isinstance(leaf, (str, bool, int)):
             h.update(repr(leaf).encode())
         else:
             value = np.asarray(leaf)
             h.update(f"{value.dtype.str}{value.shape}".encode())
-            h.update(np.ascontiguousarray(value).tobytes())
+            floating = np.issubdtype(value.dtype, np.floating)
+            h.update(_quantised(value) if floating else np.ascontiguousarray(value).tobytes())
     return h.hexdigest()
+
+
+KEY_BITS = 32  # a key tells apart values that differ by more than about 1e-10 of themselves or of their array's largest
+
+
+def _quantised(value: np.ndarray) -> bytes:
+    """`value` (any shape, floating point) as bytes: each finite entry rounded to `KEY_BITS` significant bits, those
+    smaller than 2**-KEY_BITS of the array's largest finite magnitude made 0 (a computed zero's noise), then the NaN
+    and infinite entries as they are. A value and one a few units in its last place away (1.0 and 1 - 4e-16, a
+    rotation's 0 and 4e-18) give the same bytes, unless they straddle one of the rounding's midpoints."""
+    value = value.astype(np.float64)
+    finite = np.isfinite(value)
+    largest = float(np.max(np.abs(value[finite]), initial=0.0))
+    kept = np.where(finite & (np.abs(value) >= np.ldexp(largest, -KEY_BITS)), value, 0.0)
+    mantissa, exponent = np.frexp(kept)
+    rounded = np.ldexp(np.rint(np.ldexp(mantissa, KEY_BITS)), exponent - KEY_BITS) + 0.0  # + 0.0: no -0.0
+    return rounded.tobytes() + np.where(finite, 0.0, value).tobytes()
 
 
 def source_digest() -> bytes:
