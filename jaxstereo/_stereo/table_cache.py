@@ -79,8 +79,9 @@ def table_key(name: str, inputs) -> str:
     with the PyTree's structure (static fields such as a rectification's mode and size included).
 
     Floating-point values (arrays and numbers alike) are hashed to `KEY_BITS` significant bits (`_quantised`), not
-    to their last bit: a rectification computed from the same rig can differ in its last bits between processes
-    (XLA on a GPU picks its kernels per process by timing them), and its key must not."""
+    to their last bit: a rectification computed from the same rig can differ in its last bits between processes (on
+    a GPU under load, where XLA picks its kernels per process by timing them, it got another key), and its key must
+    not."""
     import jax  # here: the module is imported before JAX by the command line (`match_ahead.py`)
 
     leaves, structure = jax.tree_util.tree_flatten(inputs)

@@ -87,9 +87,10 @@ def test_the_key_of_a_rectification_is_the_same_in_another_process(tmp_path, x64
 
 
 def test_the_key_ignores_last_bit_differences_and_keeps_real_ones(x64):
-    """On a GPU, XLA picks its kernels per process by timing them, and under load (the suite on 12 workers
-    beside one H100) a rectification of the same rig came out different in its last bits in another process:
-    its key (and so the command line's match plan) must not change with that, and must with a real change."""
+    """On an H100 under load (the suite on 12 workers) a rectification of the same rig got another key in another
+    process (run alone, three processes agreed to the last bit; XLA picks its GPU kernels per process by timing
+    them): its key (and so the command line's match plan) must not change with its last bits, and must with a real
+    change."""
     import jax
 
     spec = RigSpec(image_size=(432, 288), dist=(-0.12, 0.09, 0.0, 0.0, 0.0),
