@@ -398,8 +398,8 @@ def _refine_rows(L, Rimg, gradient, d0, valid, rows, u, v, shift: float, window:
     if with_sigma:
         sigma = np.where(keep, sigma_refined, sigma_sgbm)
         if straddles is not None:  # a patch across the waterline: see `refine_disparity`
-            bound = np.hypot(sigma, kink) if kink is not None else sigma_sgbm
-            sigma = np.where(keep & straddles, np.maximum(sigma, bound), sigma)
+            least = np.hypot(sigma, kink) if kink is not None else sigma_sgbm
+            sigma = np.where(keep & straddles, np.maximum(sigma, least), sigma)
         disagreement = _disagreement(d0, refined, keep, sigma_sgbm, window, sigma_window)
     return Subpixel(_masked(np.where(keep, refined, d0), valid), _masked(sigma, valid), _masked(disagreement, valid),
                     ~keep & off_plane)
