@@ -24,13 +24,13 @@ import json
 import math
 from pathlib import Path
 
-import equinox as eqx
 import numpy as np
 
 from .._app.io import write_text_atomic
 from .._geometry.camera import Camera
 from .._geometry.errors import JaxStereoError
 from .._geometry.interface import Interface
+from .._geometry.module import Module, field
 from .._geometry.pose import Pose
 from .._geometry.precision import float64
 from .._geometry.types import PathLike
@@ -39,9 +39,9 @@ FORMAT = "jaxstereo-rig"
 VERSION = 1
 
 
-class Rig(eqx.Module):
-    """A calibrated stereo rig, an equinox Module like its cameras (a PyTree: `eqx.filter_jit` and
-    `eqx.tree_at` work on it; the provenance dict's entries are static leaves).
+class Rig(Module):
+    """A calibrated stereo rig, a `Module` like its cameras (a PyTree: equinox's `filter_jit` and `tree_at` work
+    on it; the provenance dict's entries are leaves that are not arrays).
 
     **Fields:** `left`, `right` (`Camera`, world frame Z up); `interface` (`Interface` or None until the
     water level is known); `calibration` (dict of residuals and provenance, JSON-serialisable).
@@ -50,7 +50,7 @@ class Rig(eqx.Module):
     left: Camera
     right: Camera
     interface: Interface | None = None
-    calibration: dict = eqx.field(default_factory=dict)
+    calibration: dict = field(default_factory=dict)
 
     def __check_init__(self):
         if not isinstance(self.left, Camera) or not isinstance(self.right, Camera):

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .errors import JaxStereoError, check_shape, is_concrete
+from .module import Module, field, replaced
 from .pose import Pose
 from .precision import as_float64, float64
 from .types import Coefficients, Matrix3, Scalar
@@ -92,7 +92,7 @@ def undistort_normalized(
     return jnp.stack([x, y], axis=-1)
 
 
-class Camera(eqx.Module):
+class Camera(Module):
     """An OpenCV camera: pinhole intrinsics, OpenCV distortion and a world -> camera pose.
 
     Pixel centres sit at integer coordinates (OpenCV's convention); `u = fx * x'' + cx`.
@@ -112,7 +112,7 @@ class Camera(eqx.Module):
     cy: Float[Array, ""]
     dist: Float[Array, "8"]
     pose: Pose
-    image_size: tuple[int, int] = eqx.field(static=True)
+    image_size: tuple[int, int] = field(static=True)
 
     @float64
     def __init__(self, fx: Scalar, fy: Scalar, cx: Scalar, cy: Scalar, dist: Coefficients, pose: Pose,
@@ -217,4 +217,4 @@ class Camera(eqx.Module):
     @float64
     def with_pose(self, pose: Pose) -> "Camera":
         """The same camera at another pose."""
-        return eqx.tree_at(lambda c: c.pose, self, pose)
+        return replaced(self, pose=pose)

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .errors import JaxStereoError, is_concrete
+from .module import Module, replaced
 from .precision import as_float64, float64
 from .types import Scalar, Vector3
 from .vectors import dot3
@@ -16,7 +16,7 @@ N_AIR = 1.000
 N_WATER = 1.333
 
 
-class Interface(eqx.Module):
+class Interface(Module):
     """A flat refracting interface between air (above) and water (below).
 
     The plane is `normal . x = level` in world coordinates; `normal` is a unit vector pointing into the
@@ -85,7 +85,7 @@ class Interface(eqx.Module):
     @float64
     def with_level(self, level: Scalar) -> "Interface":
         """The same interface at another level (metres)."""
-        return eqx.tree_at(lambda i: i.level, self, jnp.asarray(level, dtype=self.level.dtype))
+        return replaced(self, level=jnp.asarray(level, dtype=self.level.dtype))
 
 
 @float64

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .errors import JaxStereoError, is_concrete
+from .module import Module, field
 from .precision import as_float64, float64
 from .types import Matrix3, Vector3
 from .vectors import apply3
@@ -65,7 +65,7 @@ def so3_log(R: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
     return jnp.where(near_pi, axis * theta, factor * w)
 
 
-class Pose(eqx.Module):
+class Pose(Module):
     """A rigid transform from the world frame to a camera frame: `x_cam = R @ x_world + t`.
 
     **Fields:**
@@ -74,8 +74,8 @@ class Pose(eqx.Module):
     - `t`: translation, shape (3,), metres, the world origin in camera coordinates.
     """
 
-    R: Float[Array, "3 3"] = eqx.field(converter=as_float64)
-    t: Float[Array, "3"] = eqx.field(converter=as_float64)
+    R: Float[Array, "3 3"] = field(converter=as_float64)
+    t: Float[Array, "3"] = field(converter=as_float64)
 
     def __check_init__(self):
         if np.shape(self.R) != (3, 3):

@@ -9,7 +9,6 @@ epipolar lines of under-water points become (nearly) straight rows.
 from __future__ import annotations
 
 import cv2
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,12 +18,13 @@ from .._geometry.camera import Camera
 from .._geometry.errors import JaxStereoError
 from .._geometry.first_order import _virtual_camera
 from .._geometry.interface import Interface, check_camera_above
+from .._geometry.module import Module, field
 from .._geometry.refraction import intersect_plane
 from .._geometry.vectors import apply3, inverse3, unit3
 from .table_cache import cached_tables
 
 
-class Rectification(eqx.Module):
+class Rectification(Module):
     """A rectified stereo geometry (a PyTree: passes through `jax.jit`).
 
     **Fields:** `K` (3, 3) shared rectified intrinsics, pixels; `R` (3, 3) world -> rectified camera
@@ -37,8 +37,8 @@ class Rectification(eqx.Module):
     R: Float[Array, "3 3"]
     centers: Float[Array, "2 3"]
     interface: Interface | None
-    mode: str = eqx.field(static=True)
-    size: tuple[int, int] = eqx.field(static=True)
+    mode: str = field(static=True)
+    size: tuple[int, int] = field(static=True)
 
     @property
     def baseline_m(self) -> float:

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._geometry.errors import JaxStereoError
+from .._geometry.module import Module, field
 
 
-class Heightfield(eqx.Module):
+class Heightfield(Module):
     """A surface `z = height(x, y)` sampled on a regular grid, bilinear in between, with an albedo map.
 
     Grid node `(i, j)` (row `i`, column `j`) sits at `x = x0 + j * spacing`, `y = y0 + i * spacing`.
@@ -33,14 +33,14 @@ class Heightfield(eqx.Module):
 
     z: Float[Array, "ny nx"]
     albedo: Float[Array, "ny nx 3"]
-    x0: float = eqx.field(static=True)
-    y0: float = eqx.field(static=True)
-    spacing: float = eqx.field(static=True)
-    block: int = eqx.field(static=True)
-    z_min: float = eqx.field(static=True)
-    z_max: float = eqx.field(static=True)
+    x0: float = field(static=True)
+    y0: float = field(static=True)
+    spacing: float = field(static=True)
+    block: int = field(static=True)
+    z_min: float = field(static=True)
+    z_max: float = field(static=True)
     block_max: Float[Array, "nby nbx"]
-    fine_block: int = eqx.field(static=True)
+    fine_block: int = field(static=True)
     fine_max: Float[Array, "nfy nfx"]
     cell_max: Float[Array, "ncy ncx"]
 
