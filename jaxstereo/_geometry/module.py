@@ -4,10 +4,10 @@
 A `Module` subclass is a dataclass of its annotated fields; its array fields are the PyTree's leaves (they pass
 through `jax.jit`, `jax.vmap` and `jax.grad`, and equinox's `filter_jit` and `tree_at`), and the fields declared
 `field(static=True)` ride along as the tree's static data (hashable: an image size, a mode). As with equinox's
-`Module`, whose behaviour this keeps for these types: an `__init__` of the class's own may assign the fields; then
-each field's `converter` is applied, and each `__check_init__` along the class's bases is called (it validates and
-raises); after that the instance is frozen. Rebuilding a tree (`jax.tree_util`'s unflatten) runs none of them:
-its leaves may be tracers or placeholders.
+`Module`, whose behaviour this keeps for these types: an `__init__` of the class's own (or the dataclass's) assigns
+the fields, then each `__check_init__` along the class's bases is called (it validates and raises); after that the
+instance is frozen. Rebuilding a tree (`jax.tree_util`'s unflatten) runs neither: its leaves may be tracers or
+placeholders.
 
 Why not equinox's own: importing equinox takes about 0.1 s of CPU (its neural-network layers, debugging and
 internal tools come with it), which a fresh `jaxstereo reconstruct` paid for five classes of plain fields.
@@ -27,11 +27,9 @@ import numpy as np
 _FROZEN = "_module_frozen"
 
 
-def field(*, static: bool = False, converter: Callable[[Any], Any] | None = None, **kwargs) -> Any:
-    """A `Module` field: `dataclasses.field` with `static` (static PyTree data instead of a leaf) and `converter`
-    (applied to the value once `__init__` has set it)."""
-    metadata = {**kwargs.pop("metadata", {}), "static": static, "converter": converter}
-    return dataclasses.field(metadata=metadata, **kwargs)
+def field(*, static: bool = False, **kwargs) -> Any:
+    """A `Module` field: `dataclasses.field` with `static` (static PyTree data instead of a leaf)."""
+    return dataclasses.field(metadata={**kwargs.pop("metadata", {}), "static": static}, **kwargs)
 
 
 class Module:
@@ -44,7 +42,6 @@ class Module:
         fields = dataclasses.fields(cls)
         cls._leaf_names = tuple(f.name for f in fields if not f.metadata.get("static", False))
         cls._static_names = tuple(f.name for f in fields if f.metadata.get("static", False))
-        cls._converters = tuple((f.name, f.metadata["converter"]) for f in fields if f.metadata.get("converter"))
         cls._checks = tuple(base.__dict__["__check_init__"] for base in cls.__mro__ if "__check_init__" in base.__dict__)
         cls.__init__ = _finishing(cls.__init__)
         jax.tree_util.register_pytree_with_keys(cls, _flatten_with_keys, functools.partial(_unflatten, cls),
@@ -72,8 +69,8 @@ class Module:
 
 
 def replaced(module: Module, **changes) -> Module:
-    """A copy of `module` with the fields `changes` given new values, as they are: no `__init__`, converter or
-    check runs (equinox's `tree_at` on those fields)."""
+    """A copy of `module` with the fields `changes` given new values, as they are: neither `__init__` nor a check
+    runs (equinox's `tree_at` on those fields)."""
     values = {name: getattr(module, name) for name in (*module._leaf_names, *module._static_names)}
     unknown = set(changes) - set(values)
     if unknown:
@@ -82,7 +79,7 @@ def replaced(module: Module, **changes) -> Module:
 
 
 def _finishing(init: Callable) -> Callable:
-    """`init` followed by the converters and checks of the instance's class, then freezing it (the outermost
+    """`init` followed by the checks of the instance's class, then freezing it (the outermost
     `__init__` only: a subclass's that calls its base's finishes once)."""
 
     @functools.wraps(init)
@@ -98,8 +95,6 @@ def _finishing(init: Callable) -> Callable:
         missing = [name for name in (*cls._leaf_names, *cls._static_names) if name not in self.__dict__]
         if missing:
             raise TypeError(f"{cls.__name__}.__init__ left the fields {missing} unset")
-        for name, convert in cls._converters:
-            self.__dict__[name] = convert(self.__dict__[name])
         for check in cls._checks:
             check(self)
         self.__dict__[_FROZEN] = True

@@ -7,9 +7,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .errors import JaxStereoError, is_concrete
-from .module import Module, field
+from .module import Module
 from .precision import as_float64, float64
-from .types import Matrix3, Vector3
+from .types import Coefficients, Matrix3, Vector3
 from .vectors import apply3
 
 
@@ -74,8 +74,13 @@ class Pose(Module):
     - `t`: translation, shape (3,), metres, the world origin in camera coordinates.
     """
 
-    R: Float[Array, "3 3"] = field(converter=as_float64)
-    t: Float[Array, "3"] = field(converter=as_float64)
+    R: Float[Array, "3 3"]
+    t: Float[Array, "3"]
+
+    def __init__(self, R: Matrix3 | Coefficients, t: Vector3 | Coefficients):
+        # Any float array or nested sequence here: `__check_init__` names a wrong shape.
+        self.R = as_float64(R)
+        self.t = as_float64(t)
 
     def __check_init__(self):
         if np.shape(self.R) != (3, 3):
