@@ -5,8 +5,8 @@ turns float64 arrays into float32 (7e-5 px of error in the exact projection). So
 function and method, and every user-facing pipeline function, is decorated with `float64`: called
 directly, it runs with 64-bit types enabled whatever the global setting, its float inputs are promoted to
 float64 and its outputs are float64. Traced inside a caller's own `jax.jit`/`grad` with 64-bit types
-disabled, it refuses with a clear error instead of computing in float32. `as_float64` is the converter
-the geometry Modules (`Pose`, `Camera`, `Interface`) apply to their fields, so that they hold float64.
+disabled, it refuses with a clear error instead of computing in float32. `as_float64` is what the geometry
+types' `__init__`s (`Pose`, `Camera`, `Interface`) apply to their fields, so that they hold float64.
 """
 
 from __future__ import annotations
