@@ -113,7 +113,7 @@ def evaluate(left: np.ndarray, right: np.ndarray, truth: np.ndarray, out: Output
     first, count = disparity_search_range(float(truth[known].min()), float(truth[known].max()),
                                           MatchOptions().margin_px)
     out.log(f"SGBM over disparities {first} to {first + count} px")
-    right, sgbm, exposure = match_rectified(left, right, (first, count), MatchOptions(), colour=True)
+    right, sgbm, exposure, _ = match_rectified(left, right, (first, count), MatchOptions(), colour=True)
     if exposure is not None and exposure.applied:
         out.log("the right image's levels mapped onto the left's and the pair matched again, as the survey does")
     scored = known & np.isfinite(sgbm)

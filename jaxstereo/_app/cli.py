@@ -203,7 +203,8 @@ def _cmd_reconstruct(args) -> int:
         raise JaxStereoError(f"--photometric-ratio must be >= 0 (0 keeps every match), got {args.photometric_ratio}")
     options = ReconstructOptions(model=args.model, z_range_m=z_range,
                                  match=MatchOptions(block_size=args.block_size, two_way=not args.one_way,
-                                                    match_exposure=not args.levels_as_they_are),
+                                                    match_exposure=not args.levels_as_they_are,
+                                                    narrow_search=not args.full_search),
                                  water_level_std_m=args.water_level_std,
                                  max_photometric_ratio=args.photometric_ratio or None)
     preview = Path(args.preview) if args.preview else output.with_name(output.stem + "_preview.png")
@@ -745,7 +746,7 @@ def _match_plan(args):
 
     arguments = {"water_level": args.water_level, "z_range": args.z_range, "model": args.model,
                  "block_size": args.block_size, "one_way": args.one_way,
-                 "levels_as_they_are": args.levels_as_they_are}
+                 "levels_as_they_are": args.levels_as_they_are, "full_search": args.full_search}
     return plan_path(os.path.join(root, "tables"), source_digest, args.rig, arguments)
 
 

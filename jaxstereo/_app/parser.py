@@ -127,6 +127,9 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--one-way", action="store_true",
                    help="skip matching the right image against the left (about 0.3 s less on a 2-megapixel pair; "
                         "keeps more foreground disparities carried past occluding edges)")
+    p.add_argument("--full-search", action="store_true",
+                   help="search every disparity the height range allows (default: only those a match of the pair at "
+                        "a quarter of its size finds, 16 px either side, within that range)")
     p.add_argument("--levels-as-they-are", action="store_true",
                    help="match the images' grey levels as the cameras recorded them (default: the right image's "
                         "levels are mapped onto the left's at the first matches, and the pair matched again where "

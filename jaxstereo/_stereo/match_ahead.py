@@ -38,6 +38,7 @@ import numpy as np
 
 from .exposure import ExposureMatch, match_exposure
 from .matching import MatchOptions, sgbm_disparity
+from .scene_range import scene_search
 from .table_cache import trim_folder
 
 log = logging.getLogger("jaxstereo")
@@ -46,14 +47,15 @@ log = logging.getLogger("jaxstereo")
 class Matched(NamedTuple):
     """A matched pair: the `left` and `right` rectified images (h, w[, 3]) uint8, SGBM's `disparity` (h, w)
     float32 pixels of the left rectified image (NaN: no match), the left camera's remap tables `left_map`
-    (two (h, w) float32: real pixel x, y of each left rectified pixel) and the `exposure` map the right image
-    was given (None: not asked for)."""
+    (two (h, w) float32: real pixel x, y of each left rectified pixel), the `exposure` map the right image
+    was given (None: not asked for) and the disparities SGBM `searched` (first, count) pixels."""
 
     left: np.ndarray
     right: np.ndarray
     disparity: np.ndarray
     left_map: tuple[np.ndarray, np.ndarray]
     exposure: ExposureMatch | None
+    searched: tuple[int, int]
 
 
 def remap(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
@@ -69,25 +71,29 @@ def match_rectifying(left_image: np.ndarray, right_image: np.ndarray, maps, sear
     then mapped onto the left's at the matches found (`match_exposure`); where that changes them, the pair is
     matched again, and `Matched.right` is the mapped image."""
     rect_l, rect_r = remap(left_image, maps[0]), remap(right_image, maps[1])
-    rect_r, disparity, exposure = match_rectified(rect_l, rect_r, search, options, colour)
-    return Matched(rect_l, rect_r, disparity, maps[0], exposure)
+    rect_r, disparity, exposure, searched = match_rectified(rect_l, rect_r, search, options, colour)
+    return Matched(rect_l, rect_r, disparity, maps[0], exposure, searched)
 
 
 def match_rectified(rect_l: np.ndarray, rect_r: np.ndarray, search: tuple[int, int], options: MatchOptions,
-                    colour: bool) -> tuple[np.ndarray, np.ndarray, ExposureMatch | None]:
+                    colour: bool) -> tuple[np.ndarray, np.ndarray, ExposureMatch | None, tuple[int, int]]:
     """Match a rectified pair (h, w[, 3]) uint8 as the survey does: SGBM over `search` (first disparity, count)
-    pixels, on colour or grey (see `match_rectifying`), then with `options.match_exposure` the right image's grey
-    levels mapped onto the left's at those matches, and the pair matched again where the map changed them.
+    pixels, narrowed to what a coarse match of the pair finds with `options.narrow_search` (`scene_search`), on
+    colour or grey (see `match_rectifying`), then with `options.match_exposure` the right image's grey levels mapped
+    onto the left's at those matches, and the pair matched again where the map changed them.
 
-    **Returns:** `(right, disparity, exposure)`: the right image as matched (mapped or as given), SGBM's disparity
-    (h, w) float32 pixels (NaN: no match) and the exposure map (None: not asked for)."""
+    **Returns:** `(right, disparity, exposure, searched)`: the right image as matched (mapped or as given), SGBM's
+    disparity (h, w) float32 pixels (NaN: no match), the exposure map (None: not asked for) and the disparities
+    searched (first, count)."""
+    if options.narrow_search:
+        search = scene_search(rect_l, rect_r, search, options)
     disparity = _sgbm(rect_l, rect_r, search, options, colour)
     exposure = None
     if options.match_exposure:
         rect_r, exposure = match_exposure(rect_l, rect_r, disparity)
         if exposure.applied:
             disparity = _sgbm(rect_l, rect_r, search, options, colour)
-    return rect_r, disparity, exposure
+    return rect_r, disparity, exposure, (int(search[0]), int(search[1]))
 
 
 def _sgbm(rect_l: np.ndarray, rect_r: np.ndarray, search: tuple[int, int], options: MatchOptions,

@@ -27,7 +27,9 @@ class MatchOptions:
     foreground's outline (see `drop_fattened`; 0: keep them); `occlusion_reach_px` drop this many matched
     pixels beside each strip the right camera cannot see, on the background's side (see `beside_occlusions`;
     0: keep them); `match_exposure` map the right image's grey levels onto the left's, one gain and one offset
-    per channel, before matching (see `exposure.py`; no map is applied where the cameras already agree).
+    per channel, before matching (see `exposure.py`; no map is applied where the cameras already agree);
+    `narrow_search` search only the disparities a coarse match of the pair finds, with a margin, within the range
+    given (see `scene_range.py`).
     """
 
     block_size: int = 5
@@ -41,6 +43,7 @@ class MatchOptions:
     fattening_reach_px: int = 12
     occlusion_reach_px: int = 12
     match_exposure: bool = True
+    narrow_search: bool = True
 
     def __post_init__(self):
         if self.block_size < 1 or self.block_size % 2 == 0:

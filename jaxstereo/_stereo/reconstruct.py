@@ -391,8 +391,8 @@ def reconstruct(
     search = _search_range(rect, rig, interface, z_range, options)
     loading = _load_in_background(rect, rig, interface, model, options.uncertainty, search)
     offsets = _row_offset_table(rect, rig, interface, rect.size, search) if model == "exact" else None
-    (rect_l, rect_r, disparity, left_map, exposure), ahead = _match(rect, rig, left_image, right_image, search, options,
-                                                          match_ahead)
+    (rect_l, rect_r, disparity, left_map, exposure, searched), ahead = _match(rect, rig, left_image, right_image,
+                                                                        search, options, match_ahead)
     timings["rectify+match (s)"] = time.perf_counter() - t0
 
     stage("sub-pixel")
@@ -440,6 +440,7 @@ def reconstruct(
         "water_level_m": survey.water_level,
         "rectification": mode,
         "disparity_search_px": [search[0], search[0] + search[1]],
+        "disparity_searched_px": [searched[0], searched[0] + searched[1]],
         "matched_ahead": ahead,
         "exposure_right_to_left": exposure.as_dict() if exposure is not None else None,
         "height_range_m": [float(z_range[0]), float(z_range[1])],

@@ -235,6 +235,7 @@ def test_wet_matches_refine_and_move_onto_their_exact_curves_against_true_dispar
     search = _search_range(rect, rig, interface, (-0.03, float(interface.level) + 0.4), options)
     matched, _ = _match(rect, rig, left, right, search, options, None)
     rect_l, rect_r, sgbm = matched.left, matched.right, matched.disparity
+    searched = matched.searched  # narrowed by a coarse match (`scene_search`)
     table = _row_offset_table(rect, rig, interface, rig.image_size, search)
     offset = _row_offsets(table, sgbm, search)
     refined = refine_disparity(rect_l, rect_r, sgbm, offset, sigma_window=5,
@@ -242,6 +243,9 @@ def test_wet_matches_refine_and_move_onto_their_exact_curves_against_true_dispar
     true, true_offset = _true_wet_disparity(rect, rig, interface, np.load(DATA / "breakwater_gt.npz"), "I",
                                             sgbm.shape)
     assert np.isfinite(true).mean() > 0.5  # the scene is there: 68 % of the pixels seen by both cameras
+    # SGBM searched fewer disparities than the height range allows, and every true one
+    assert searched[1] < search[1]  # 80 of 112 measured
+    assert searched[0] <= np.nanmin(true) and np.nanmax(true) < searched[0] + searched[1]  # 242.4-287.6 px in 231-310
     # The exact curves, tabulated and interpolated at the true disparities, against the true right rows: they leave
     # the rows by up to 0.28 px under water here; 0.0002 px RMS off measured (the offsets came out half the true
     # ones, 0.06 px RMS off, before the match's point was taken on the left pixel's ray).
