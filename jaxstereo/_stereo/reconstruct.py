@@ -372,8 +372,9 @@ def reconstruct(
       imports matplotlib for its preview once the triangulation starts: XLA's work leaves a core free there.
 
     **Returns:** `(survey, summary)`; the summary holds point counts (and how many were dropped and why,
-    those above the height range apart), the submerged fraction, the height range used (`height_range_m`),
-    whether the match came from `match_ahead` (`matched_ahead`),
+    those above the height range apart), the submerged fraction, the height range used (`height_range_m`), the
+    disparities it allows (`disparity_search_px`) and those SGBM searched (`disparity_searched_px`, see
+    `scene_range.py`), whether the match came from `match_ahead` (`matched_ahead`),
     the exact curves' row offsets from the rectified rows, seconds per stage, and `warnings` (sentences; a
     scene that rises past the height range's top).
     """
