@@ -22,17 +22,17 @@ class Output:
     def log(self, message: str) -> None:
         print(f"[{self.name} {time.perf_counter() - self.started:6.1f} s] {message}", flush=True)
 
-    def table(self, header: list[str], rows: list[list], title: str, notes: str = "") -> str:
-        """Write `table.md` and `table.csv`; returns the Markdown."""
+    def table(self, header: list[str], rows: list[list], title: str, notes: str = "", name: str = "table") -> str:
+        """Write `<name>.md` and `<name>.csv`; returns the Markdown."""
         md = [f"**{title}**", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         md += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
         if notes:
             md += ["", notes]
         text = "\n".join(md) + "\n"
-        write_text_atomic(self.dir / "table.md", text)
+        write_text_atomic(self.dir / f"{name}.md", text)
         buf = io.StringIO()
         writer = csv.writer(buf)
         writer.writerow(header)
         writer.writerows(rows)
-        write_text_atomic(self.dir / "table.csv", buf.getvalue())
+        write_text_atomic(self.dir / f"{name}.csv", buf.getvalue())
         return text

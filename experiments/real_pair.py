@@ -6,15 +6,17 @@ early refinement raised the share of pixels off by more than 1 px and the mean e
 survey's matching (`match_rectified`: colour SGBM over the true disparities' range and the usual margin, the right
 image's levels mapped onto the left's and the pair matched again) on such a pair, then the sub-pixel step as shipped
 (47 px patch, 9 px where the two disagree), the 47 px patch alone, and SGBM's own values, and scores each against the
-truth on the same pixels (those SGBM matched and the truth knows):
+truth on the same pixels (those SGBM matched and the truth knows). A second table does what a library caller would:
+one plain OpenCV SGBM run on the images as given (colour, then grey), then `refine_disparity` with its defaults and
+with the right image's levels left as they are:
 
     python experiments/real_pair.py LEFT RIGHT TRUE_DISPARITY [--out DIR]
 
 LEFT and RIGHT are rectified images (any format the commands read); TRUE_DISPARITY is the left image's disparity in
 pixels (`x_right = x_left - d`), as a Middlebury `.pfm`, a `.npy` or an `.npz` (its first array), non-finite or
 0 where unknown. Middlebury's Motorcycle pair at a quarter of its resolution ships inside scikit-image's wheel
-(`skimage/data/motorcycle_left.png`, `motorcycle_right.png`, `motorcycle_disp.npz`). Writes `table.md`, `table.csv`
-and `real_pair.png` (each estimate's error map and its signed error against the true disparity's fraction) under
+(`skimage/data/motorcycle_left.png`, `motorcycle_right.png`, `motorcycle_disp.npz`). Writes `table.md`, `table.csv`,
+`table_plain.md`, `table_plain.csv` and `real_pair.png` (each estimate's error map and its signed error against the true disparity's fraction) under
 `--out` (default `experiments/results/real-pair`).
 
 Standalone: not one of the registered experiments (`python -m experiments`), as it needs a pair from outside.
@@ -27,6 +29,7 @@ import itertools
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: `experiments` and the checkout
@@ -122,7 +125,7 @@ def evaluate(left: np.ndarray, right: np.ndarray, truth: np.ndarray, out: Output
     estimates = {"SGBM's own sub-pixel values": (sgbm, None)}
     for name, small in (("sub-pixel step as shipped (47 px, 9 px)", 9), ("47 px patch alone", None)):
         out.log(f"refine_disparity: {name}")
-        refined = refine_disparity(left, right, sgbm, small_window=small)
+        refined = refine_disparity(left, right, sgbm, small_window=small, match_levels=False)  # mapped already
         estimates[name] = (refined.disparity, refined.sigma)
     rows = []
     for name, (estimate, sigma) in estimates.items():
@@ -131,6 +134,40 @@ def evaluate(left: np.ndarray, right: np.ndarray, truth: np.ndarray, out: Output
                      f"{s['mean_signed_rest_px']:+.3f}",
                      f"{s['within_2_sigma_percent']:.1f}" if "within_2_sigma_percent" in s else "-"])
     return rows, {"scored": scored, **{name: e for name, (e, _) in estimates.items()}}
+
+
+def plain_sgbm(left: np.ndarray, right: np.ndarray, first: int, count: int) -> np.ndarray:
+    """One OpenCV SGBM run as a library caller would make it (3-way, 5 x 5 block, OpenCV's usual penalties, its own
+    left-right check, no filters of ours), on the images as given: the disparity (h, w) px, NaN where none."""
+    channels = 1 if left.ndim == 2 else left.shape[2]
+    matcher = cv2.StereoSGBM_create(minDisparity=first, numDisparities=count, blockSize=5, P1=8 * channels * 25,
+                                    P2=32 * channels * 25, disp12MaxDiff=1, uniquenessRatio=10,
+                                    speckleWindowSize=100, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    raw = matcher.compute(left, right)
+    return np.where(raw >= first * 16, raw.astype(np.float32) / 16.0, np.nan).astype(np.float32)
+
+
+def evaluate_plain(left: np.ndarray, right: np.ndarray, truth: np.ndarray, out: Output) -> list[list]:
+    """A library caller's use of the sub-pixel step: one plain SGBM run (`plain_sgbm`) on colour and on grey, then
+    `refine_disparity` with its defaults (the right image's levels mapped onto the left's at SGBM's matches) and
+    with the levels as they are; each scored on the pixels that run matched and the truth knows."""
+    known = np.isfinite(truth)
+    first, count = disparity_search_range(float(truth[known].min()), float(truth[known].max()),
+                                          MatchOptions().margin_px)
+    rows = []
+    for name, pair in (("colour", (left, right)), ("grey", [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in (left, right)])):
+        out.log(f"plain SGBM on {name}, then refine_disparity")
+        sgbm = plain_sgbm(*pair, first, count)
+        scored = known & np.isfinite(sgbm)
+        for label, estimate in ((f"{name}: SGBM's own sub-pixel values", sgbm),
+                                (f"{name}: refine_disparity, levels mapped (default)",
+                                 refine_disparity(*pair, sgbm).disparity),
+                                (f"{name}: refine_disparity, levels as they are",
+                                 refine_disparity(*pair, sgbm, match_levels=False).disparity)):
+            s = score(estimate, truth, scored)
+            rows.append([label, s["pixels"], f"{s['bad_percent']:.2f}", f"{s['mean_abs_rest_px']:.3f}",
+                         f"{s['mean_signed_rest_px']:+.3f}"])
+    return rows
 
 
 def plot(path: Path, truth: np.ndarray, estimates: dict) -> None:
@@ -177,6 +214,10 @@ def main(argv=None) -> int:
     print(out.table(header, rows, f"Sub-pixel disparities against the true disparity: {args.left.name}, "
                     f"{left.shape[1]}x{left.shape[0]}",
                     "The same pixels for every row: those SGBM matched whose true disparity is known."))
+    plain = evaluate_plain(left, right, truth, out)
+    print(out.table(header[:-1], plain, "The same, after one plain OpenCV SGBM run, as a library caller would refine it",
+                    "Each run's rows on the same pixels: those it matched whose true disparity is known.",
+                    name="table_plain"))
     plot(out.dir / "real_pair.png", truth, estimates)
     out.log(f"table and figure in {out.dir}")
     return 0

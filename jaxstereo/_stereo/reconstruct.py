@@ -402,7 +402,7 @@ def reconstruct(
     subpixel = refine_disparity(rect_l, rect_r, disparity, offset, options.subpixel_window,
                                 options.subpixel_small_window, sigma_window=options.match.block_size,
                                 subpixel=options.subpixel, with_sigma=options.uncertainty,
-                                waterline=waterline_disparity(rect))
+                                waterline=waterline_disparity(rect), match_levels=False)  # mapped, or as asked
     disparity, undetermined = _drop_undetermined(subpixel, options.max_sigma_disparity_px)
     disparity, off_surface = _drop_off_surface(disparity, subpixel)
     timings["sub-pixel (s)"] = time.perf_counter() - t1

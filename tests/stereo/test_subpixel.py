@@ -86,6 +86,29 @@ def test_a_fit_moves_no_further_from_sgbm_than_its_bound(monkeypatch):
     assert bounded[1] < 0.01
 
 
+def test_the_right_cameras_other_levels_are_mapped_onto_the_lefts_before_the_fit():
+    """The fit compares grey levels as they are, and two cameras rarely record a scene alike. With the right image
+    15 % darker and 12 levels brighter, or under a gamma of 1.3, the refined disparities of the pair's inner part were
+    0.069 and 0.086 px RMS off with its levels as they are (0.027 px as rendered, the start 0.10 px, measured); mapped
+    onto the left's at the start's matches first (the default), 0.027 px. Where the cameras agree nothing changes."""
+    left, right, start, truth = _bumped_pair()
+    v, u = np.mgrid[0:H, 0:W]
+    inner = (u > 40) & (u < W - 40) & (v > 20) & (v < H - 20)
+
+    def rms(image, **kwargs):
+        d = refine_disparity(left, image, start, **kwargs).disparity
+        return float(np.sqrt(np.mean((d[inner] - truth[inner]) ** 2)))
+
+    rendered = refine_disparity(left, right, start, match_levels=False).disparity
+    assert np.array_equal(refine_disparity(left, right, start).disparity, rendered, equal_nan=True)
+    as_rendered = rms(right, match_levels=False)
+    assert as_rendered < 0.04
+    for other in (np.rint(right * 0.85 + 12), np.rint(255 * (right / 255.0) ** 1.3)):
+        other = np.clip(other, 0, 255).astype(np.uint8)
+        assert rms(other) < 1.1 * as_rendered
+        assert rms(other, match_levels=False) > 2 * as_rendered
+
+
 RAMP = (0.07, 0.03)  # disparity slopes (px per px along u, v): a surface inclined to the image
 
 
