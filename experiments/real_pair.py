@@ -16,8 +16,8 @@ LEFT and RIGHT are rectified images (any format the commands read); TRUE_DISPARI
 pixels (`x_right = x_left - d`), as a Middlebury `.pfm`, a `.npy` or an `.npz` (its first array), non-finite or
 0 where unknown. Middlebury's Motorcycle pair at a quarter of its resolution ships inside scikit-image's wheel
 (`skimage/data/motorcycle_left.png`, `motorcycle_right.png`, `motorcycle_disp.npz`). Writes `table.md`, `table.csv`,
-`table_plain.md`, `table_plain.csv` and `real_pair.png` (each estimate's error map and its signed error against the true disparity's fraction) under
-`--out` (default `experiments/results/real-pair`).
+`table_plain.md`, `table_plain.csv` and `real_pair.png` (each estimate's error map and its signed error against the
+true disparity's fraction) under `--out` (default `experiments/results/real-pair`).
 
 Standalone: not one of the registered experiments (`python -m experiments`), as it needs a pair from outside.
 """
@@ -155,7 +155,8 @@ def evaluate_plain(left: np.ndarray, right: np.ndarray, truth: np.ndarray, out: 
     first, count = disparity_search_range(float(truth[known].min()), float(truth[known].max()),
                                           MatchOptions().margin_px)
     rows = []
-    for name, pair in (("colour", (left, right)), ("grey", [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in (left, right)])):
+    grey = [cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) for image in (left, right)]
+    for name, pair in (("colour", (left, right)), ("grey", grey)):
         out.log(f"plain SGBM on {name}, then refine_disparity")
         sgbm = plain_sgbm(*pair, first, count)
         scored = known & np.isfinite(sgbm)
@@ -215,7 +216,8 @@ def main(argv=None) -> int:
                     f"{left.shape[1]}x{left.shape[0]}",
                     "The same pixels for every row: those SGBM matched whose true disparity is known."))
     plain = evaluate_plain(left, right, truth, out)
-    print(out.table(header[:-1], plain, "The same, after one plain OpenCV SGBM run, as a library caller would refine it",
+    print(out.table(header[:-1], plain,
+                    "The same, after one plain OpenCV SGBM run, as a library caller would refine it",
                     "Each run's rows on the same pixels: those it matched whose true disparity is known.",
                     name="table_plain"))
     plot(out.dir / "real_pair.png", truth, estimates)
