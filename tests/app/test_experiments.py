@@ -8,7 +8,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from experiments.__main__ import main, update_readme  # noqa: E402
+from experiments.__main__ import main, update_readme
 
 
 def test_incidence_limit_experiment_and_readme_update(tmp_path):
@@ -198,6 +198,13 @@ def test_real_pair_scores_each_estimate_against_the_true_disparity(tmp_path):
     assert by_name["SGBM's own sub-pixel values"][3] == f"{sgbm['mean_abs_rest_px']:.3f}"
     error = np.abs(estimates["SGBM's own sub-pixel values"] - truth)[scored]
     assert sgbm["bad_percent"] == 100 * np.mean(error > 1) and sgbm["pixels"] == scored.sum()
+    # the error bars: 0.3 px off, sigma 0.1 px alone (2 sigma 0.2) misses it, with a 0.2 px disagreement (2 sigma
+    # 0.45) a survey's point covers it; SGBM's own values carry none
+    off = score(truth + 0.3, truth, scored, np.full_like(truth, 0.1), np.full_like(truth, 0.2))
+    assert off["within_2_sigma_percent"] == 0.0 and off["within_2_survey_sigma_percent"] == 100.0
+    assert by_name["SGBM's own sub-pixel values"][-2:] == ["-", "-"]
+    assert float(by_name["sub-pixel step as shipped (47 px, 9 px)"][-1]) >= float(
+        by_name["sub-pixel step as shipped (47 px, 9 px)"][-2])
     with pytest.raises(SystemExit, match="one size"):
         evaluate(left, right[:, 1:], truth, Output(tmp_path, "real-pair"))
     for name, image in (("left.png", left), ("right.png", right)):
