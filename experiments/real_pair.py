@@ -6,7 +6,9 @@ early refinement raised the share of pixels off by more than 1 px and the mean e
 survey's matching (`match_rectified`: colour SGBM over the true disparities' range and the usual margin, the right
 image's levels mapped onto the left's and the pair matched again) on such a pair, then the sub-pixel step as shipped
 (47 px patch, 9 px where the two disagree), the 47 px patch alone, and SGBM's own values, and scores each against the
-truth on the same pixels (those SGBM matched and the truth knows). A second table does what a library caller would:
+truth on the same pixels (those SGBM matched and the truth knows); for the step's rows also the share of pixels within
+2 sigma, of its standard deviation alone and of the one a survey's point carries (the estimators' disagreement
+added). A second table does what a library caller would:
 one plain OpenCV SGBM run on the images as given (colour, then grey), then `refine_disparity` with its defaults and
 with the right image's levels left as they are:
 
