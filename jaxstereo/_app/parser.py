@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import re
+from importlib import metadata
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -11,6 +13,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="jaxstereo",
         description="Refraction-aware stereo photogrammetry of wave-flume models through the water surface.",
     )
+    parser.add_argument("--version", action=_Versions, nargs=0,
+                        help="print jaxstereo's version and those of the packages it runs on, then exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _add_demo(sub)
     _add_batch(sub)
@@ -21,6 +25,43 @@ def build_parser() -> argparse.ArgumentParser:
     _add_grid(sub)
     _add_damage(sub)
     return parser
+
+
+def versions() -> str:
+    """jaxstereo's version, then the version installed of each package it depends on (its metadata's requirements
+    outside the extras, and jaxlib beside jax), one line each: a bug report's first lines. Read from the packages'
+    metadata, none of them imported."""
+    from .. import __version__
+
+    lines = [f"jaxstereo {__version__}"]
+    try:
+        required = metadata.requires("jaxstereo") or []
+    except metadata.PackageNotFoundError:
+        return lines[0] + " (not installed: its dependencies' versions unknown)"
+    for requirement in required:
+        if "extra ==" in requirement:
+            continue
+        name = re.match(r"[A-Za-z0-9._-]+", requirement).group(0)
+        lines.append(_installed(name))
+        if name == "jax":
+            lines.append(_installed("jaxlib"))
+    return "\n".join(lines)
+
+
+def _installed(name: str) -> str:
+    """One line of `versions`: `name` and its version installed, or that it is not."""
+    try:
+        return f"  {name} {metadata.version(name)}"
+    except metadata.PackageNotFoundError:
+        return f"  {name} not installed"
+
+
+class _Versions(argparse.Action):
+    """`--version`: print `versions()` and exit with status 0."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(versions())
+        parser.exit()
 
 
 def _add_demo(sub) -> None:

@@ -44,3 +44,18 @@ def test_the_console_command_and_python_m_enter_there():
     (script,) = [e for e in entry_points(group="console_scripts") if e.name == "jaxstereo"]
     assert script.value == "jaxstereo._app.command:run"
     assert "from ._app.command import run" in (Path(jaxstereo.__file__).parent / "__main__.py").read_text()
+
+
+def test_version_names_jaxstereo_and_the_packages_it_runs_on():
+    import tomllib
+    from importlib import metadata
+
+    done = subprocess.run([sys.executable, "-m", "jaxstereo", "--version"], capture_output=True, text=True, check=True)
+    lines = done.stdout.splitlines()
+    project = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())["project"]
+    assert jaxstereo.__version__ == project["version"] == metadata.version("jaxstereo")
+    assert lines[0] == f"jaxstereo {jaxstereo.__version__}"
+    # each dependency pyproject names, at the version installed
+    for requirement in project["dependencies"]:
+        name = requirement.split(">")[0].split("=")[0].split("<")[0].strip()
+        assert f"  {name} {metadata.version(name)}" in lines, (name, lines)
