@@ -480,7 +480,7 @@ def _cmd_refine(args) -> int:
     check_pair(left, right, rig.image_size, f"left image {args.left!r}", f"right image {args.right!r}")
     refine = tuple(v.strip() for v in args.refine.split(",") if v.strip())
     control, points = _refine_control(args.control or [])
-    pl, pr = _refine_correspondences(args, left, right, rig)
+    pl, pr = _refine_correspondences(args, left, right, rig, control)
     result = refine_rig(rig, pl, pr, args.water_level_guess, refine=refine, control=control,
                         floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points)
     _print_refinement(result, refine, control, points)
@@ -516,13 +516,16 @@ def _refine_control(items: list[str]):
     return control, points
 
 
-def _refine_correspondences(args, left, right, rig):
-    """Correspondences from the dense matching (SIFT when it finds too few), or SIFT on request."""
+def _refine_correspondences(args, left, right, rig, control):
+    """Correspondences from the dense matching (SIFT when it finds too few), or SIFT on request; against a DEM
+    `control`, measured along the rows as the survey that made it measures its points."""
     from .._stereo.correspondences import dense_correspondences
     from .._stereo.refine import find_correspondences
+    from .._surface.grid import DEM
 
     if args.matches == "dense":
-        pl, pr = dense_correspondences(left, right, rig, args.water_level_guess, args.max_points)
+        estimator = "survey" if isinstance(control, DEM) else "lucas-kanade"
+        pl, pr = dense_correspondences(left, right, rig, args.water_level_guess, args.max_points, estimator)
         source = "the dense matching"
     if args.matches == "sift" or len(pl) < MIN_DENSE_CORRESPONDENCES:
         if args.matches == "dense":

@@ -17,6 +17,18 @@ for a change of convergence (the level with a dry DEM as control moved +3 mm wit
 Where SGBM's disparity departs from a plane over the large window by more than `ROUGH_RELIEF_PX` (RMS),
 the match is measured on a 15 x 15 window instead (rock: 0.3 mm, spread 0.5 mm; the board, whose relief is
 matching noise of 0.2-0.3 px, keeps the large window).
+
+That test misses rock whose SGBM disparities happen to lie near a plane over 31 px: on a POV-Ray flume of other rocks
+under 0.12 m of water (`experiments/povray_flume.py --level 0.12 --seed 3`) the 31 px window put the emerged rock's
+correspondences 1.5 mm low (median against the true surface; the dry survey's DEM there 0.4 mm low), and the level
+refined with that DEM as control came out 2.1 mm off with a standard deviation of 0.7 mm (the development flume:
+-0.2 mm). Where the control is a survey's DEM, the correspondences are therefore measured as the survey measures
+its points (`estimator="survey"`): along the rows, the survey's own sub-pixel disparities (`refine_disparity`), whose
+small patch follows the relief; across them, Lucas-Kanade on the rectified pair, as above (the rows' offset does not
+depend on the relief), with the same forward-and-back checks. The DEM and the correspondences then share their
+estimator and its bias on the relief, which the control's difference cancels: level errors +0.26 mm (std 0.30) and
++0.23 mm (std 0.32) on the two flumes. Against the floor's exact plane the Lucas-Kanade window stays: the survey's
+values there put the level 1.3 and 0.5 mm off (Lucas-Kanade: 0.1 and -0.1 mm).
 """
 
 from __future__ import annotations
@@ -30,7 +42,8 @@ from .._calibration.rig import Rig
 from .._geometry.camera import Camera
 from .._geometry.interface import Interface
 from .._geometry.precision import float64
-from .rectify import Rectification, rectified_rays, rectify
+from .matching import refine_disparity
+from .rectify import Rectification, rectified_rays, rectify, waterline_disparity
 
 
 @jax.jit
@@ -60,11 +73,13 @@ def spread_over_grid(pixels: np.ndarray, size: tuple[int, int], max_points: int)
 
 @float64
 def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: Rig, level_guess: float,
-                          max_points: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+                          max_points: int = 2000, estimator: str = "lucas-kanade") -> tuple[np.ndarray, np.ndarray]:
     """Correspondences (real pixels) from the dense matching at the guessed water level, spread over the image.
 
     **Arguments:** the wet pair (uint8 RGB or grey, the rig's size); the rig; `level_guess` metres;
-    `max_points` at most this many, one per grid cell.
+    `max_points` at most this many, one per grid cell; `estimator` "lucas-kanade" (a 31 or 15 px window on the
+    real images, for a control that is an exact plane: the floor) or "survey" (along the rows the survey's own
+    sub-pixel disparities, for a control that is a survey's DEM; see the module's docstring).
 
     **Returns:** `(left_pixels, right_pixels)`, each (n, 2) float64 pixels, measured in both directions.
     """
@@ -80,12 +95,15 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
         _search_range,
     )
 
+    if estimator not in ("lucas-kanade", "survey"):
+        raise ValueError(f"estimator must be 'lucas-kanade' or 'survey', got {estimator!r}")
     interface: Interface = _interface_for(rig, level_guess)
     z_range = (-0.03, float(interface.level) + 0.4)
     rect = rectify(rig.left, rig.right, interface, "water")
     options = ReconstructOptions()
     search = _search_range(rect, rig, interface, z_range, options)
-    disparity = _match(rect, rig, left_image, right_image, search, options, None)[0].disparity
+    matched = _match(rect, rig, left_image, right_image, search, options, None)[0]
+    disparity = matched.disparity
     offset = _row_offsets(_row_offset_table(rect, rig, interface, rect.size, search), disparity, search)
     rl, rr, v, u, flat = _pairs_from_disparity(disparity)
     if rl.shape[0] == 0:
@@ -93,8 +111,16 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
     rr[:, 1] += _at(offset, flat)
     pick = spread_over_grid(rl, rect.size, max_points)
     rough = ~(plane_residual_rms(disparity, v[pick], u[pick], KLT_WINDOW) <= ROUGH_RELIEF_PX)  # NaN: rough
-    pl, pr = _chunked(_real_pixels, (rect, rig.left, rig.right), rl[pick], rr[pick])  # fixed size: compiled once
     w, h = rig.image_size
+    if estimator == "survey":
+        # the survey's right image is the exposure-mapped one (`match_levels=False`), as `reconstruct` fits it
+        along = _at(refine_disparity(matched.left, matched.right, disparity, offset,
+                                     waterline=waterline_disparity(rect), match_levels=False).disparity, flat[pick])
+        rl, rr = measured_as_the_survey(matched.left, matched.right, rl[pick], rr[pick], along, rough)
+        pl, pr = _chunked(_real_pixels, (rect, rig.left, rig.right), rl, rr)
+        inside = np.all((pl >= 0) & (pl <= [w - 1, h - 1]) & (pr >= 0) & (pr <= [w - 1, h - 1]), axis=1)
+        return pl[inside], pr[inside]
+    pl, pr = _chunked(_real_pixels, (rect, rig.left, rig.right), rl[pick], rr[pick])  # fixed size: compiled once
     margin = KLT_WINDOW // 2 + 1
     inside = np.all((pl >= margin) & (pl <= [w - 1 - margin, h - 1 - margin]) & (pr >= margin)
                     & (pr <= [w - 1 - margin, h - 1 - margin]), axis=1)
@@ -130,20 +156,49 @@ KLT_MAX_MOVE_PX = 1.5
 KLT_ROUND_TRIP_PX = 0.2
 
 
+def measured_as_the_survey(left_rectified: np.ndarray, right_rectified: np.ndarray, left_pixels: np.ndarray,
+                           right_pixels: np.ndarray, disparity: np.ndarray, rough: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Rectified matches measured as the survey measures them: the right pixel's column from the survey's sub-pixel
+    `disparity` (k,) px, its row by Lucas-Kanade on the rectified pair (`_lucas_kanade`, a `KLT_WINDOW_ROUGH` window
+    where `rough` (k,) bool, else `KLT_WINDOW`, from `right_pixels`); kept where both exist and the tracking passes
+    its checks. **Arguments:** the rectified pair, the rectified `left_pixels` and `right_pixels` (k, 2).
+    **Returns:** the kept rectified `(left_pixels, right_pixels)`."""
+    right = right_pixels.copy()
+    kept = np.zeros(len(left_pixels), bool)
+    for where, window in ((~rough, KLT_WINDOW), (rough, KLT_WINDOW_ROUGH)):
+        index = np.flatnonzero(where)
+        tracked, ok = _lucas_kanade(left_rectified, right_rectified, left_pixels[index], right_pixels[index], window)
+        right[index, 1] = tracked[:, 1]
+        kept[index] = ok
+    right[:, 0] = left_pixels[:, 0] - disparity
+    kept &= np.isfinite(disparity)
+    return left_pixels[kept], right[kept]
+
+
 def measure_both_ways(left_image: np.ndarray, right_image: np.ndarray, left_pixels: np.ndarray,
                       right_pixels: np.ndarray, window: int = KLT_WINDOW) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel right pixels of matches in both image directions: Lucas-Kanade on a `window` x `window`
     patch from the given right pixels, kept when it moved less than `KLT_MAX_MOVE_PX` and tracking back lands
     within `KLT_ROUND_TRIP_PX` of the left pixel. **Returns:** the kept `(left_pixels, right_pixels)`."""
+    if left_pixels.shape[0] == 0:
+        return left_pixels, right_pixels
+    tracked, keep = _lucas_kanade(left_image, right_image, left_pixels, right_pixels, window)
+    return left_pixels[keep], tracked[keep]
+
+
+def _lucas_kanade(left_image, right_image, left_pixels, right_pixels, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's Lucas-Kanade tracker (one level, grey) from `right_pixels` (k, 2), forward and back: the tracked right
+    pixels (k, 2) float64 and whether each passes the checks (k,) bool (see `measure_both_ways`)."""
+    if left_pixels.shape[0] == 0:
+        return right_pixels.astype(np.float64), np.zeros(0, bool)
     grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in (left_image, right_image)]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-3)
     options = dict(winSize=(window, window), maxLevel=0, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-    if left_pixels.shape[0] == 0:
-        return left_pixels, right_pixels
     a, b = left_pixels.astype(np.float32), right_pixels.astype(np.float32)
     fwd, ok_f, _ = cv2.calcOpticalFlowPyrLK(grey[0], grey[1], a, b.copy(), **options)
     back, ok_b, _ = cv2.calcOpticalFlowPyrLK(grey[1], grey[0], fwd, a.copy(), **options)
     keep = (ok_f.ravel() == 1) & (ok_b.ravel() == 1)
     keep &= np.linalg.norm(fwd - b, axis=1) < KLT_MAX_MOVE_PX
     keep &= np.linalg.norm(back - a, axis=1) < KLT_ROUND_TRIP_PX
-    return left_pixels[keep], fwd[keep].astype(np.float64)
+    return fwd.astype(np.float64), keep

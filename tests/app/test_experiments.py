@@ -215,3 +215,50 @@ def test_real_pair_scores_each_estimate_against_the_true_disparity(tmp_path):
     table = (tmp_path / "out" / "real-pair" / "table.md").read_text()
     assert "| " + by_name["SGBM's own sub-pixel values"][3] + " |" in table
     assert (tmp_path / "out" / "real-pair" / "real_pair.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_povray_flume_cameras_and_true_surface_without_povray():
+    """`povray_flume`: POV-Ray's camera vectors shoot each pixel along the OpenCV pinhole's ray, and the true surface
+    is each rock's exact top (an analytic sphere; a turned ellipsoid's quadric), the core's elsewhere."""
+    import re
+
+    import cv2
+    import numpy as np
+
+    from experiments import povray_flume as pf
+
+    K = np.array([[2700.0, 0, 850.2], [0, 2705.0, 580.7], [0, 0, 1]])  # principal point off the image's centre
+    R = cv2.Rodrigues(np.array([3.1, 0.02, -0.01]))[0]
+    t = np.array([-0.3, 0.2, 2.0])
+    size = (1728, 1152)
+    text = pf.camera_pov(K, R, t, size)
+    vectors = {k: np.array(re.search(k + r" <([^>]*)>", text).group(1).split(","), float)
+               for k in ("location", "direction", "right", "up")}
+    assert np.allclose(vectors["location"], -R.T @ t)
+    for u, v in ((0, 0), (1727, 1151), (400.0, 900.0)):
+        pov = (vectors["direction"] + ((u + 0.5) / size[0] - 0.5) * vectors["right"]
+               + (0.5 - (v + 0.5) / size[1]) * vectors["up"])  # POV-Ray's ray through the pixel's centre
+        pinhole = R.T @ np.linalg.solve(K, [u, v, 1.0])
+        assert np.allclose(np.cross(pov, pinhole), 0, atol=1e-12) and pov @ pinhole > 0
+
+    x = np.arange(0.30, 0.50, 0.001)
+    y = np.arange(0.20, 0.40, 0.001)
+    sphere = {"centre": np.array([[0.4, 0.3, 0.2]]), "R": np.eye(3)[None], "semi": np.full((1, 3), 0.02)}
+    z = pf.heightfield(sphere, np.array([True]), x, y)
+    X, Y = np.meshgrid(x, y)
+    inside = np.hypot(X - 0.4, Y - 0.3) < 0.0199
+    assert np.allclose(z[inside], 0.2 + np.sqrt(0.02**2 - (X - 0.4) ** 2 - (Y - 0.3) ** 2)[inside], atol=1e-6)
+    assert np.allclose(z[~inside & (np.hypot(X - 0.4, Y - 0.3) > 0.0201)], pf.core_height(X)[0, 0], atol=1e-6)
+
+    stones = pf.rocks(seed=5)
+    one = {k: v[:1] for k, v in stones.items()}
+    c, Rr, s = one["centre"][0], one["R"][0], one["semi"][0]
+    x, y = np.arange(c[0] - 0.04, c[0] + 0.04, 0.001), np.arange(c[1] - 0.04, c[1] + 0.04, 0.001)
+    z = pf.heightfield(one, np.array([True]), x, y).astype(float)
+    X, Y = np.meshgrid(x, y)
+    on = z > pf.core_height(X) + 1e-4
+    local = (np.stack([X[on], Y[on], z[on]], 1) - c) @ Rr / s  # the rock's own frame, semi-axes 1
+    assert on.sum() > 500 and np.allclose(np.sum(local**2, axis=1), 1.0, atol=1e-4)  # on the ellipsoid
+    assert np.all((local / s) @ Rr.T[:, 2] > 0)  # the upper root: the quadric's gradient points up there
+    lost = pf.hole(stones, (0.4, 0.3))
+    assert 2 <= lost.sum() <= 12 and set(stones["layer"][lost]) <= {1, 2}

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from jaxstereo._stereo.correspondences import plane_residual_rms
+from jaxstereo._stereo.correspondences import measured_as_the_survey, plane_residual_rms
 
 
 def test_plane_residual_is_zero_on_a_plane_and_the_lstsq_residual_elsewhere():
@@ -27,3 +27,24 @@ def test_plane_residual_is_zero_on_a_plane_and_the_lstsq_residual_elsewhere():
     assert 0.28 < got[0] < 0.40
     # In the corner the box lies mostly outside the image: fewer than half its pixels, no value.
     assert np.isnan(got[3])
+
+
+def test_measured_as_the_survey_takes_columns_from_the_disparity_and_rows_from_the_images():
+    """A rectified pair whose right image is the left one moved 0.35 px down (a row offset, as an imperfect rig
+    leaves) and 12 px left: the rows come from Lucas-Kanade within 0.05 px, the columns are the disparity given (the
+    survey's), and a match without one, or tracked off the image, is dropped."""
+    import cv2
+
+    rng = np.random.default_rng(4)
+    left = cv2.GaussianBlur(rng.uniform(0, 255, (240, 320)).astype(np.float32), (0, 0), 1.5)
+    shift = np.float32([[1, 0, -12.0], [0, 1, 0.35]])
+    right = cv2.warpAffine(left, shift, (320, 240), flags=cv2.INTER_CUBIC)
+    left, right = (np.clip(im, 0, 255).astype(np.uint8) for im in (left, right))
+    left_px = np.array([[100.0, 80.0], [150.0, 120.0], [200.0, 160.0], [250.0, 100.0], [5.0, 120.0]])
+    start = left_px - [12.0, 0.0]  # SGBM's whole-pixel match on the rectified row
+    disparity = np.array([12.1, 11.9, np.nan, 12.0, 12.0])  # as the survey measured it (px)
+    rough = np.array([False, True, False, False, False])
+    kept_left, kept_right = measured_as_the_survey(left, right, left_px, start, disparity, rough)
+    assert kept_left.tolist() == left_px[[0, 1, 3]].tolist()  # no disparity: dropped; off the image: dropped
+    assert np.allclose(kept_right[:, 0], kept_left[:, 0] - disparity[[0, 1, 3]])
+    assert np.allclose(kept_right[:, 1], kept_left[:, 1] + 0.35, atol=0.05)  # 0.38 measured
