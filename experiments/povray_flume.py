@@ -34,6 +34,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from jaxstereo._app.io import atomic_path, write_bytes_atomic, write_text_atomic
+
 DEV = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "povray-flume-dev"
 DN50 = 0.036  # m
 SLOPE = 2.0  # cot(alpha)
@@ -171,8 +173,10 @@ def render(scene: str, out: Path, size, threads: int = os.cpu_count() or 1) -> N
                                "+R3", "-J", "-D", "+FN", f"+WT{threads}", "Display=off"], capture_output=True, text=True, check=False)
         if done.returncode != 0 or not png.exists():
             raise RuntimeError(f"povray failed on {out.name}: {done.stderr[-500:]}")
-        image = cv2.imread(str(png))
-    cv2.imwrite(str(out), image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        ok, jpeg = cv2.imencode(".jpg", cv2.imread(str(png)), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    if not ok:
+        raise RuntimeError(f"cannot encode {out.name} as JPEG")
+    write_bytes_atomic(out, jpeg.tobytes())  # a stopped run leaves no half image: it is rendered again
 
 
 def main(argv=None) -> None:
@@ -199,7 +203,8 @@ def main(argv=None) -> None:
     x = np.round(np.arange(-0.1, 1.1005, 0.001), 6)
     y = np.round(np.arange(-0.05, 0.6495, 0.001), 6)
     surfaces = {"I": heightfield(stones, np.ones(len(lost), bool), x, y), "III": heightfield(stones, ~lost, x, y)}
-    np.savez_compressed(args.out / "breakwater_gt.npz", x=x, y=y, **surfaces)
+    with atomic_path(args.out / "breakwater_gt.npz") as tmp:
+        np.savez_compressed(tmp, x=x, y=y, **surfaces)
     scenes = {}
     for name in args.scenes.split(","):
         kind, stage, wet = name.split("_")
@@ -220,7 +225,7 @@ def main(argv=None) -> None:
     written.update(scenes=scenes, breakwater={"dn50": DN50, "slope": SLOPE, "toe": TOE, "height": HEIGHT,
                                               "hole_centre_xy": list(hole_xy), "width": 0.6},
                    made_by=f"experiments/povray_flume.py --level {args.level} --seed {args.seed}")
-    (args.out / "truth.json").write_text(json.dumps(written, indent=1))
+    write_text_atomic(args.out / "truth.json", json.dumps(written, indent=1))
 
 
 if __name__ == "__main__":

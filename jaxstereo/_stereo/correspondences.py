@@ -114,7 +114,8 @@ def dense_correspondences(left_image: np.ndarray, right_image: np.ndarray, rig: 
     w, h = rig.image_size
     if estimator == "survey":
         # the survey's right image is the exposure-mapped one (`match_levels=False`), as `reconstruct` fits it
-        along = _at(refine_disparity(matched.left, matched.right, disparity, offset,
+        along = _at(refine_disparity(matched.left, matched.right, disparity, offset, options.subpixel_window,
+                                     options.subpixel_small_window, sigma_window=options.match.block_size,
                                      waterline=waterline_disparity(rect), match_levels=False).disparity, flat[pick])
         rl, rr = measured_as_the_survey(matched.left, matched.right, rl[pick], rr[pick], along, rough)
         pl, pr = _chunked(_real_pixels, (rect, rig.left, rig.right), rl, rr)
@@ -166,9 +167,10 @@ def measured_as_the_survey(left_rectified: np.ndarray, right_rectified: np.ndarr
     **Returns:** the kept rectified `(left_pixels, right_pixels)`."""
     right = right_pixels.copy()
     kept = np.zeros(len(left_pixels), bool)
+    grey = _grey(left_rectified, right_rectified)
     for where, window in ((~rough, KLT_WINDOW), (rough, KLT_WINDOW_ROUGH)):
         index = np.flatnonzero(where)
-        tracked, ok = _lucas_kanade(left_rectified, right_rectified, left_pixels[index], right_pixels[index], window)
+        tracked, ok = _lucas_kanade(*grey, left_pixels[index], right_pixels[index], window)
         right[index, 1] = tracked[:, 1]
         kept[index] = ok
     right[:, 0] = left_pixels[:, 0] - disparity
@@ -183,21 +185,25 @@ def measure_both_ways(left_image: np.ndarray, right_image: np.ndarray, left_pixe
     within `KLT_ROUND_TRIP_PX` of the left pixel. **Returns:** the kept `(left_pixels, right_pixels)`."""
     if left_pixels.shape[0] == 0:
         return left_pixels, right_pixels
-    tracked, keep = _lucas_kanade(left_image, right_image, left_pixels, right_pixels, window)
+    tracked, keep = _lucas_kanade(*_grey(left_image, right_image), left_pixels, right_pixels, window)
     return left_pixels[keep], tracked[keep]
 
 
-def _lucas_kanade(left_image, right_image, left_pixels, right_pixels, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV's Lucas-Kanade tracker (one level, grey) from `right_pixels` (k, 2), forward and back: the tracked right
-    pixels (k, 2) float64 and whether each passes the checks (k,) bool (see `measure_both_ways`)."""
+def _grey(*images: np.ndarray) -> list[np.ndarray]:
+    """Each image (h, w[, 3]) uint8 as grey (h, w)."""
+    return [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in images]
+
+
+def _lucas_kanade(left_grey, right_grey, left_pixels, right_pixels, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's Lucas-Kanade tracker (one level) on a grey pair from `right_pixels` (k, 2), forward and back: the
+    tracked right pixels (k, 2) float64 and whether each passes the checks (k,) bool (see `measure_both_ways`)."""
     if left_pixels.shape[0] == 0:
         return right_pixels.astype(np.float64), np.zeros(0, bool)
-    grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in (left_image, right_image)]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-3)
     options = dict(winSize=(window, window), maxLevel=0, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     a, b = left_pixels.astype(np.float32), right_pixels.astype(np.float32)
-    fwd, ok_f, _ = cv2.calcOpticalFlowPyrLK(grey[0], grey[1], a, b.copy(), **options)
-    back, ok_b, _ = cv2.calcOpticalFlowPyrLK(grey[1], grey[0], fwd, a.copy(), **options)
+    fwd, ok_f, _ = cv2.calcOpticalFlowPyrLK(left_grey, right_grey, a, b.copy(), **options)
+    back, ok_b, _ = cv2.calcOpticalFlowPyrLK(right_grey, left_grey, fwd, a.copy(), **options)
     keep = (ok_f.ravel() == 1) & (ok_b.ravel() == 1)
     keep &= np.linalg.norm(fwd - b, axis=1) < KLT_MAX_MOVE_PX
     keep &= np.linalg.norm(back - a, axis=1) < KLT_ROUND_TRIP_PX
