@@ -264,3 +264,37 @@ def test_povray_flume_cameras_and_true_surface_without_povray():
     assert np.all((local / s) @ Rr.T[:, 2] > 0)  # the upper root: the quadric's gradient points up there
     lost = pf.hole(stones, (0.4, 0.3))
     assert 2 <= lost.sum() <= 12 and set(stones["layer"][lost]) <= {1, 2}
+
+
+def test_povray_rig_makes_the_rig_asked_and_boards_both_cameras_see_whole():
+    """`povray_rig`: the cameras stand where asked (height, baseline along or across the flume), their optical axes
+    meet at the convergence asked (within the jitter's spread), and every board pose keeps each corner inside both
+    images, facing both cameras; the board's squares' corners are the pattern's."""
+    import numpy as np
+
+    from experiments import povray_rig as pr
+
+    K = np.array([[3000.0, 0, 863.5], [0, 3000.0, 575.5], [0, 0, 1]])
+    for across, base in ((False, [1, 0, 0]), (True, [0, 1, 0])):
+        rig = pr.make_rig(2.3, 0.25, across, 3.0, seed=7)
+        R = {s: np.array(rig[s]["R"]) for s in "LR"}
+        centre = {s: -R[s].T @ np.array(rig[s]["t"]) for s in "LR"}
+        assert np.allclose(R["L"] @ R["L"].T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R["L"]), 1.0)
+        assert np.allclose(centre["R"] - centre["L"], 0.25 * np.array(base), atol=1e-12)
+        assert np.allclose([centre["L"][2], centre["R"][2]], 2.3, atol=1e-12)
+        axes = R["L"][2], R["R"][2]
+        angle = np.degrees(np.arccos(np.clip(axes[0] @ axes[1], -1, 1)))
+        assert abs(angle - 3.0) < 1.5, angle  # 0.4 deg jitter per axis and camera
+        assert axes[0] @ base > 0 > axes[1] @ base  # toed in: each looks toward the other
+        assert R["L"][0] @ base > 0.99  # the image's x axis along the baseline: the right camera sees d > 0
+        poses = pr.board_poses(K, rig, 6, seed=3)
+        assert len(poses) == 6
+        local = pr.board_corners()
+        assert local.shape == (58, 3) and np.isclose(local[1, 0] - local[0, 0], pr.SQUARE)
+        for Rb, c in poses:
+            X = local @ Rb.T + c
+            for s in "LR":
+                uv, depth = pr.project(K, rig[s], X)
+                assert (depth > 0).all()
+                assert (uv >= pr.MARGIN_PX).all() and (uv <= np.array(pr.SIZE) - 1 - pr.MARGIN_PX).all()
+                assert Rb[:, 2] @ (centre[s] - c) > 0  # the printed face toward the camera

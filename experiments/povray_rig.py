@@ -1,0 +1,236 @@
+"""A whole POV-Ray flume through a rig of one's choosing: its calibration photographs, origin board and scenes.
+
+`povray_flume.py` renders new rocks and water depths through the development flume's own cameras. The project is
+also judged on rigs it has not seen, so this makes the rig as well: two cameras at a height, a baseline along or
+across the flume, toed in by a convergence angle, each tilted and turned by a few tenths of a degree at random (as
+every real rig is), and a focal length of one's choosing. It renders with POV-Ray 3.7 (`povray` on the PATH, an
+independent ray tracer; not a Python dependency, `apt install povray`):
+- `calib/calib_NN_{L,R}.jpg`: a 9x6 chessboard of 40 mm squares at random poses in the air, seen whole by both
+  cameras (tilted up to 40 degrees, turned at random);
+- `origin_{L,R}.jpg`: the board lying on the floor, its top face at z = 0, its inner corner (0, 0) at `origin`;
+- `board_wet_{L,R}.jpg`: the sloping board of the development flume (textured like the floor) half under water;
+- the breakwater scenes of `povray_flume.py` (painted and grey rock, stages I and III, wet and dry).
+It writes `breakwater_gt.npz` and a `truth.json` that `flume-score --data DIR` reads
+(`--only calibration,board,breakwater,grey,wetdry,refine-dem,refine-floor,damage,speed`). Nothing here uses
+jaxstereo's geometry: the cameras are POV-Ray's own pinholes (`povray_flume.camera_pov`).
+
+Run: python experiments/povray_rig.py OUT [--height 2.3] [--baseline 0.25] [--across] [--converge-deg 3]
+     [--focal-px 3000] [--level 0.15] [--seed 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: `experiments` and the checkout
+
+from experiments import povray_flume as pf
+from jaxstereo._app.io import atomic_path, write_text_atomic
+
+SIZE = (1728, 1152)
+SQUARE = 0.04  # m
+PATTERN = (9, 6)  # inner corners
+MARGIN_PX = 40  # every board corner this far inside both images
+AIM = (0.5, 0.3)  # m, the point of the floor under the rig's middle: the model's middle
+BOARD_PLANE = {"x0": 0.12, "length": 0.65, "drop": 0.28, "width": 0.6}  # the development flume's sloping board
+
+
+def _turn(axis, angle: float) -> np.ndarray:
+    """Rotation matrix (3, 3) by `angle` radians about the unit vector `axis` (Rodrigues)."""
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def make_rig(height: float, baseline: float, across: bool, converge_deg: float, seed: int,
+             aim=AIM, jitter_deg: float = 0.4) -> dict:
+    """Two nadir cameras `height` m above the floor, `baseline` m apart along the flume (x) or `across` it (y),
+    centred over `aim` (x, y) m, each toed in by half of `converge_deg` toward the other, then turned by a normal
+    random rotation of `jitter_deg` degrees per axis (`seed`). **Returns:** {"L": {"R", "t"}, "R": {...}}, world ->
+    camera (OpenCV axes: x right, y down, z forward), metres, as lists."""
+    rng = np.random.default_rng(seed)
+    base = np.array([0.0, 1.0, 0.0]) if across else np.array([1.0, 0.0, 0.0])
+    down = np.array([0.0, 0.0, -1.0])
+    nadir = np.stack([base, np.cross(down, base), down])  # rows: the camera's axes in the world
+    rig = {}
+    for side, sign in (("L", -1.0), ("R", 1.0)):
+        centre = np.array([aim[0], aim[1], height]) + sign * baseline / 2 * base
+        toe_in = _turn(nadir[1], -sign * np.radians(converge_deg) / 2)  # about the camera's y axis, toward the other
+        tilt, turn, roll = rng.normal(0, np.radians(jitter_deg), 3)
+        jitter = _turn([1, 0, 0], tilt) @ _turn([0, 1, 0], turn) @ _turn([0, 0, 1], roll)
+        R = jitter @ nadir @ toe_in.T
+        rig[side] = {"R": R.tolist(), "t": (-R @ centre).tolist()}
+    return rig
+
+
+def project(K: np.ndarray, camera: dict, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole pixels (n, 2) of world points `X` (n, 3) and their depths (n,) in `camera` ({"R", "t"})."""
+    x = X @ np.asarray(camera["R"]).T + np.asarray(camera["t"])
+    return (x[:, :2] / x[:, 2:]) * [K[0, 0], K[1, 1]] + K[:2, 2], x[:, 2]
+
+
+def board_corners() -> np.ndarray:
+    """The board's inner corners (54, 3) and its sheet's four corners, in the board's frame (m)."""
+    i, j = np.meshgrid(np.arange(PATTERN[0]), np.arange(PATTERN[1]))
+    inner = np.stack([i.ravel() * SQUARE, j.ravel() * SQUARE, 0 * i.ravel()], 1)
+    lo, hi = -1.6 * SQUARE, np.array(PATTERN) * SQUARE + 0.6 * SQUARE
+    sheet = np.array([[lo, lo, 0], [hi[0], lo, 0], [hi[0], hi[1], 0], [lo, hi[1], 0]])
+    return np.concatenate([inner, sheet])
+
+
+def board_poses(K: np.ndarray, rig: dict, count: int, seed: int, max_tilt_deg: float = 40.0) -> list[tuple]:
+    """`count` poses (R, c) of the board in the air (board -> world: X = R p + c) whose every corner both cameras
+    see `MARGIN_PX` inside their images, facing them: centres spread over the cameras' common view at 0.3-1.3 m
+    above the floor, the board tilted up to `max_tilt_deg` from level toward a random azimuth, turned at random."""
+    rng = np.random.default_rng(seed)
+    local = board_corners()
+    middle = local[:-4].mean(0)
+    centres = [-np.asarray(rig[s]["R"]).T @ np.asarray(rig[s]["t"]) for s in "LR"]
+    poses = []
+    for _ in range(20000):
+        if len(poses) == count:
+            break
+        z = rng.uniform(0.3, 1.3)
+        reach = 0.45 * (centres[0][2] - z)
+        c = np.array([*(np.mean(centres, 0)[:2] + rng.uniform(-reach, reach, 2)), z])
+        turned = _turn([0, 0, 1], rng.uniform(0, 2 * np.pi))
+        azimuth = rng.uniform(0, 2 * np.pi)
+        R = _turn([np.cos(azimuth), np.sin(azimuth), 0], np.radians(rng.uniform(0, max_tilt_deg))) @ turned
+        X = (local - middle) @ R.T + c
+        ok = True
+        for side, centre in zip("LR", centres):
+            uv, depth = project(K, rig[side], X)
+            facing = np.dot(R[:, 2], centre - c) / np.linalg.norm(centre - c)
+            ok &= bool((depth > 0).all() and facing > np.cos(np.radians(60))
+                       and (uv >= MARGIN_PX).all() and (uv[:, 0] <= SIZE[0] - 1 - MARGIN_PX).all()
+                       and (uv[:, 1] <= SIZE[1] - 1 - MARGIN_PX).all())
+        if ok:
+            poses.append((R, c - R @ middle))
+    if len(poses) < count:
+        raise RuntimeError(f"only {len(poses)} board poses fit both cameras' views")
+    return poses
+
+
+def board_pov(R: np.ndarray, c: np.ndarray) -> str:
+    """The chessboard as POV-Ray draws it: a white sheet, 10 x 7 squares of `SQUARE` whose inner corners lie at
+    (i, j) `SQUARE` in its frame (its top face z = 0, 4 mm thick), placed by X = R p + c."""
+    s, (nx, ny) = SQUARE, PATTERN
+    lo, hi = -1.6 * s, np.array(PATTERN) * s + 0.6 * s
+    squares = (f"function {{ select(x + {s}, 0, select({nx * s} - x, 0, select(y + {s}, 0, select({ny * s} - y, 0, "
+               f"mod(floor(x / {s} + 1) + floor(y / {s} + 1), 2))))) }}")
+    matrix = ", ".join(f"{a:.12g}" for a in (*R[:, 0], *R[:, 1], *R[:, 2], *c))
+    return (f"box {{ <{lo}, {lo}, -0.004>, <{hi[0]}, {hi[1]}, 0> texture {{ pigment {{ {squares} colour_map {{ "
+            "[0 rgb 0.92] [1 rgb 0.04] } } finish { ambient 0.35 diffuse 0.6 } } "
+            f"matrix <{matrix}> }}")
+
+
+def _scene(camera: str, body: list[str], background: float | None = None) -> str:
+    """A POV-Ray scene: `camera`, the lights and the floor's texture of `povray_flume.scene_pov`, the objects in
+    `body`, and a grey `background` (None: black; the scene's floor fills the view)."""
+    parts = ["#version 3.7;", "global_settings { assumed_gamma 1.0 max_trace_level 8 }", camera,
+             "light_source { <0.6, -0.4, 3.5> rgb 1.0 }", "light_source { <-0.5, 1.2, 3.0> rgb 0.35 shadowless }",
+             ("#declare Speckle = pigment { granite colour_map { [0 rgb <0.45, 0.38, 0.4>] [1 rgb <0.82, 0.74, 0.76>] }"
+              " scale 0.015 }")]
+    if background is not None:
+        parts.append(f"background {{ rgb {background} }}")
+    return "\n".join(parts + body) + "\n"
+
+
+def floor_pov(top: float = 0.0) -> str:
+    """The flume's floor, its top face at z = `top` (m)."""
+    return (f"box {{ <-1.5, -1.5, -0.05>, <2.5, 2.5, {top}> texture {{ pigment {{ Speckle }} "
+            "finish { ambient 0.3 diffuse 0.7 } } }")
+
+
+def water_pov(level: float) -> str:
+    """Fresh water (index 1.333, Fresnel reflection) up to z = `level` (m)."""
+    return (f"box {{ <-1.5, -1.5, -0.1>, <2.5, 2.5, {level}> material {{ texture {{ pigment {{ rgbf 1 }} "
+            "finish { ambient 0 diffuse 0 reflection { 0, 1 fresnel on } conserve_energy } } interior { ior 1.333 } } }")
+
+
+def sloping_board_pov(plane: dict) -> str:
+    """The development flume's sloping board: from the floor at x0 up `drop` over `length`, then level for 0.3 m,
+    across y 0 to `width`; textured like the floor."""
+    x0, x1, top = plane["x0"], plane["x0"] + plane["length"], plane["drop"]
+    return (f"prism {{ linear_sweep linear_spline 0, {plane['width']}, 5, <{x0}, 0>, <{x1}, {top}>, <{x1 + 0.3}, {top}>, "
+            f"<{x1 + 0.3}, 0>, <{x0}, 0> texture {{ pigment {{ Speckle }} finish {{ ambient 0.3 diffuse 0.7 }} }} }}")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=Path, help="the flume folder to write")
+    parser.add_argument("--height", type=float, default=2.3, help="the cameras' height above the floor, m")
+    parser.add_argument("--baseline", type=float, default=0.25, help="distance between the cameras, m")
+    parser.add_argument("--across", action="store_true", help="baseline across the flume (y) instead of along it")
+    parser.add_argument("--converge-deg", type=float, default=3.0, help="angle between the optical axes, degrees")
+    parser.add_argument("--focal-px", type=float, default=3000.0, help="focal length, pixels (1728x1152 images)")
+    parser.add_argument("--level", type=float, default=0.15, help="water level above the floor, m")
+    parser.add_argument("--seed", type=int, default=7, help="the rig's jitter, the boards' poses and the rocks")
+    parser.add_argument("--boards", type=int, default=14, help="calibration photographs")
+    parser.add_argument("--scenes", default="board_wet,bw_I_wet,bw_I_dry,bw_III_wet,grey_I_wet,grey_I_dry",
+                        help="comma list of the scenes to render")
+    args = parser.parse_args(argv)
+    if shutil.which("povray") is None:
+        raise SystemExit("povray_rig: no `povray` on the PATH (POV-Ray 3.7: apt install povray)")
+    K = np.array([[args.focal_px, 0, (SIZE[0] - 1) / 2], [0, args.focal_px, (SIZE[1] - 1) / 2], [0, 0, 1]])
+    rig = make_rig(args.height, args.baseline, args.across, args.converge_deg, args.seed)
+    print(f"rig: {args.height} m high, baseline {args.baseline} m {'across' if args.across else 'along'} the flume, "
+          f"converging {args.converge_deg} deg, f {args.focal_px} px", flush=True)
+    cams = {s: pf.camera_pov(K, np.array(rig[s]["R"]), np.array(rig[s]["t"]), SIZE) for s in "LR"}
+    (args.out / "calib").mkdir(parents=True, exist_ok=True)
+    shots = {}
+    for k, (R, c) in enumerate(board_poses(K, rig, args.boards, args.seed)):
+        shots[f"calib/calib_{k:02d}"] = ([board_pov(R, c)], 0.25)
+    origin = np.array([*AIM, 0.0]) - [4 * SQUARE, 2.5 * SQUARE, 0]  # the board's middle under the rig
+    shots["origin"] = ([floor_pov(-0.004), board_pov(np.eye(3), origin)], None)
+    stones = pf.rocks(args.seed)
+    hole_xy = (pf.TOE + pf.SLOPE * (args.level - 0.02), 0.3)
+    lost = pf.hole(stones, hole_xy)
+    scenes = {}
+    for name in args.scenes.split(","):
+        if name == "board_wet":
+            scenes[name] = {"rig": "main", "water_level": args.level, "kind": "plane", "plane": BOARD_PLANE}
+            shots[name] = ([floor_pov(), sloping_board_pov(BOARD_PLANE), water_pov(args.level)], 0.6)
+            continue
+        kind, stage, wet = name.split("_")
+        level = args.level if wet == "wet" else None
+        scenes[name] = {"rig": "main", "water_level": level, "kind": "heightfield", "stage": stage,
+                        "removed": np.flatnonzero(lost).tolist() if stage == "III" else []}
+        shots[name] = (stones, ~lost if stage == "III" else np.ones(len(lost), bool), level, kind == "grey")
+    x = np.round(np.arange(-0.1, 1.1005, 0.001), 6)
+    y = np.round(np.arange(-0.05, 0.6495, 0.001), 6)
+    if not (args.out / "breakwater_gt.npz").exists():
+        surfaces = {"I": pf.heightfield(stones, np.ones(len(lost), bool), x, y),
+                    "III": pf.heightfield(stones, ~lost, x, y)}
+        with atomic_path(args.out / "breakwater_gt.npz") as tmp:
+            np.savez_compressed(tmp, x=x, y=y, **surfaces)
+    for name, shot in shots.items():
+        for side in "LR":
+            out = args.out / f"{name}_{side}.jpg"
+            if out.exists():
+                continue
+            t0 = time.perf_counter()
+            if len(shot) == 2:
+                body, background = shot
+                scene = _scene(cams[side], body, background)
+            else:
+                scene = pf.scene_pov(shot[0], shot[1], shot[2], cams[side], shot[3])
+            pf.render(scene, out, SIZE)
+            print(f"{out.relative_to(args.out)}: {time.perf_counter() - t0:.0f} s", flush=True)
+    truth = {"K": K.tolist(), "size": list(SIZE), "n_water": 1.333, "square": SQUARE, "pattern": list(PATTERN),
+             "origin": origin.tolist(), "images": "jpg (quality 95)", "rigs": {"main": rig}, "scenes": scenes,
+             "breakwater": {"dn50": pf.DN50, "slope": pf.SLOPE, "toe": pf.TOE, "height": pf.HEIGHT,
+                            "hole_centre_xy": list(hole_xy), "width": 0.6},
+             "made_by": "experiments/povray_rig.py " + " ".join(argv if argv is not None else sys.argv[1:])}
+    write_text_atomic(args.out / "truth.json", json.dumps(truth, indent=1))
+
+
+if __name__ == "__main__":
+    main()
