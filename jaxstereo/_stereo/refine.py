@@ -289,8 +289,10 @@ def _gate(model, guess, pl, pr):
     return inlier, points
 
 
-def _initial_control(control, points, in_region, floor_z, floor_band_m):
-    """Control mask and heights for the first solve: the floor's lowest points, or the DEM's heights."""
+def _initial_control(control, points, in_region, floor_z, floor_band_m, floor_region=None):
+    """Control mask and heights for the first solve: the floor's lowest points, or the DEM's heights. A floor
+    region (x_min, x_max, m) that no correspondence falls in is refused by name: the bare floor is not in view
+    of both cameras there (under water it is seen nearer the cameras' nadir than in air)."""
     if isinstance(control, DEM):
         heights = dem_heights(control, points[:, :2])
         mask = in_region & np.isfinite(heights)
@@ -302,6 +304,11 @@ def _initial_control(control, points, in_region, floor_z, floor_band_m):
                 f"y {p_lo[1]:.3f} to {p_hi[1]:.3f} m): is it in the same world frame?")
         return mask, np.where(mask, heights, 0.0)
     heights = np.full(len(points), float(floor_z))
+    if control == "floor" and floor_region is not None and not in_region.any():
+        raise JaxStereoError(
+            f"no correspondence lies in the floor region x {floor_region[0]:.3f} to {floor_region[1]:.3f} m (at the "
+            f"guessed level they span x {points[:, 0].min():.3f} to {points[:, 0].max():.3f} m): the bare floor there "
+            "is not seen by both cameras; give a region of it nearer the images' middle, or another control")
     if control == "floor":
         lowest = np.percentile(points[in_region, 2], 2) if in_region.any() else np.inf
         return in_region & (points[:, 2] <= lowest + floor_band_m), heights
@@ -515,7 +522,7 @@ def refine_rig(
     in_region = np.ones(len(pl), bool)
     if floor_region is not None:
         in_region = (points0[:, 0] >= floor_region[0]) & (points0[:, 0] <= floor_region[1])
-    mask, heights = _initial_control(control, points0, in_region, floor_z, floor_band_m)
+    mask, heights = _initial_control(control, points0, in_region, floor_z, floor_band_m, floor_region)
     gcp = _checked_control_points(control_points)
     data = _Data(model, pl, pr, gcp, pixel_sigma, control_sigma_m, robust_sigmas)
     base_sigma = dem_sigma_m if isinstance(control, DEM) else floor_sigma_m

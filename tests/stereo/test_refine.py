@@ -185,6 +185,9 @@ def test_refine_bad_input(flume):
         refine_rig(rig, pl, pr, LEVEL, refine=("focus",))
     with pytest.raises(js.JaxStereoError, match="correspondences agree"):
         refine_rig(rig, pl, np.random.default_rng(0).uniform(0, 1000, pr.shape), LEVEL)
+    with pytest.raises(js.JaxStereoError, match=r"no correspondence lies in the floor region x -5.000 to -4.000 m "
+                       r"\(at the guessed level they span x -?\d"):  # out of view: refused before any solve
+        refine_rig(rig, pl, pr, LEVEL, control="floor", floor_region=(-5.0, -4.0))
 
 
 def test_refine_command(tmp_path, capsys):
