@@ -15,7 +15,7 @@ It writes `breakwater_gt.npz` and a `truth.json` that `flume-score --data DIR` r
 jaxstereo's geometry: the cameras are POV-Ray's own pinholes (`povray_flume.camera_pov`).
 
 Run: python experiments/povray_rig.py OUT [--height 2.3] [--baseline 0.25] [--across] [--converge-deg 3]
-     [--focal-px 3000] [--level 0.15] [--seed 7]
+     [--focal-px 3000] [--size 1728 1152] [--level 0.15] [--seed 7]
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script:
 from experiments import povray_flume as pf
 from jaxstereo._app.io import atomic_path, write_text_atomic
 
-SIZE = (1728, 1152)
+SIZE = (1728, 1152)  # pixels, the default image size
 SQUARE = 0.04  # m
 PATTERN = (9, 6)  # inner corners
 MARGIN_PX = 40  # every board corner this far inside both images
@@ -85,10 +85,12 @@ def board_corners() -> np.ndarray:
     return np.concatenate([inner, sheet])
 
 
-def board_poses(K: np.ndarray, rig: dict, count: int, seed: int, max_tilt_deg: float = 40.0) -> list[tuple]:
+def board_poses(K: np.ndarray, rig: dict, count: int, seed: int, max_tilt_deg: float = 40.0,
+                size: tuple[int, int] = SIZE) -> list[tuple]:
     """`count` poses (R, c) of the board in the air (board -> world: X = R p + c) whose every corner both cameras
-    see `MARGIN_PX` inside their images, facing them: centres spread over the cameras' common view at 0.3-1.3 m
-    above the floor, the board tilted up to `max_tilt_deg` from level toward a random azimuth, turned at random."""
+    see `MARGIN_PX` inside their images of `size` (w, h) pixels, facing them: centres spread over the cameras'
+    common view at 0.3-1.3 m above the floor, the board tilted up to `max_tilt_deg` from level toward a random
+    azimuth, turned at random."""
     rng = np.random.default_rng(seed)
     local = board_corners()
     middle = local[:-4].mean(0)
@@ -109,8 +111,8 @@ def board_poses(K: np.ndarray, rig: dict, count: int, seed: int, max_tilt_deg: f
             uv, depth = project(K, rig[side], X)
             facing = np.dot(R[:, 2], centre - c) / np.linalg.norm(centre - c)
             ok &= bool((depth > 0).all() and facing > np.cos(np.radians(60))
-                       and (uv >= MARGIN_PX).all() and (uv[:, 0] <= SIZE[0] - 1 - MARGIN_PX).all()
-                       and (uv[:, 1] <= SIZE[1] - 1 - MARGIN_PX).all())
+                       and (uv >= MARGIN_PX).all() and (uv[:, 0] <= size[0] - 1 - MARGIN_PX).all()
+                       and (uv[:, 1] <= size[1] - 1 - MARGIN_PX).all())
         if ok:
             poses.append((R, c - R @ middle))
     if len(poses) < count:
@@ -170,7 +172,8 @@ def main(argv=None) -> None:
     parser.add_argument("--baseline", type=float, default=0.25, help="distance between the cameras, m")
     parser.add_argument("--across", action="store_true", help="baseline across the flume (y) instead of along it")
     parser.add_argument("--converge-deg", type=float, default=3.0, help="angle between the optical axes, degrees")
-    parser.add_argument("--focal-px", type=float, default=3000.0, help="focal length, pixels (1728x1152 images)")
+    parser.add_argument("--focal-px", type=float, default=3000.0, help="focal length, pixels")
+    parser.add_argument("--size", type=int, nargs=2, default=SIZE, metavar=("W", "H"), help="image size, pixels")
     parser.add_argument("--level", type=float, default=0.15, help="water level above the floor, m")
     parser.add_argument("--seed", type=int, default=7, help="the rig's jitter, the boards' poses and the rocks")
     parser.add_argument("--boards", type=int, default=14, help="calibration photographs")
@@ -179,14 +182,15 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if shutil.which("povray") is None:
         raise SystemExit("povray_rig: no `povray` on the PATH (POV-Ray 3.7: apt install povray)")
-    K = np.array([[args.focal_px, 0, (SIZE[0] - 1) / 2], [0, args.focal_px, (SIZE[1] - 1) / 2], [0, 0, 1]])
+    size = tuple(args.size)
+    K = np.array([[args.focal_px, 0, (size[0] - 1) / 2], [0, args.focal_px, (size[1] - 1) / 2], [0, 0, 1]])
     rig = make_rig(args.height, args.baseline, args.across, args.converge_deg, args.seed)
     print(f"rig: {args.height} m high, baseline {args.baseline} m {'across' if args.across else 'along'} the flume, "
           f"converging {args.converge_deg} deg, f {args.focal_px} px", flush=True)
-    cams = {s: pf.camera_pov(K, np.array(rig[s]["R"]), np.array(rig[s]["t"]), SIZE) for s in "LR"}
+    cams = {s: pf.camera_pov(K, np.array(rig[s]["R"]), np.array(rig[s]["t"]), size) for s in "LR"}
     (args.out / "calib").mkdir(parents=True, exist_ok=True)
     shots = {}
-    for k, (R, c) in enumerate(board_poses(K, rig, args.boards, args.seed)):
+    for k, (R, c) in enumerate(board_poses(K, rig, args.boards, args.seed, size=size)):
         shots[f"calib/calib_{k:02d}"] = ([board_pov(R, c)], 0.25)
     origin = np.array([*AIM, 0.0]) - [4 * SQUARE, 2.5 * SQUARE, 0]  # the board's middle under the rig
     shots["origin"] = ([floor_pov(-0.004), board_pov(np.eye(3), origin)], None)
@@ -222,9 +226,9 @@ def main(argv=None) -> None:
                 scene = _scene(cams[side], body, background)
             else:
                 scene = pf.scene_pov(shot[0], shot[1], shot[2], cams[side], shot[3])
-            pf.render(scene, out, SIZE)
+            pf.render(scene, out, size)
             print(f"{out.relative_to(args.out)}: {time.perf_counter() - t0:.0f} s", flush=True)
-    truth = {"K": K.tolist(), "size": list(SIZE), "n_water": 1.333, "square": SQUARE, "pattern": list(PATTERN),
+    truth = {"K": K.tolist(), "size": list(size), "n_water": 1.333, "square": SQUARE, "pattern": list(PATTERN),
              "origin": origin.tolist(), "images": "jpg (quality 95)", "rigs": {"main": rig}, "scenes": scenes,
              "breakwater": {"dn50": pf.DN50, "slope": pf.SLOPE, "toe": pf.TOE, "height": pf.HEIGHT,
                             "hole_centre_xy": list(hole_xy), "width": 0.6},
