@@ -25,6 +25,7 @@ import json
 import shutil
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -135,7 +136,7 @@ def board_pov(R: np.ndarray, c: np.ndarray) -> str:
 
 def _scene(camera: str, body: list[str], background: float | None = None) -> str:
     """A POV-Ray scene: `camera`, the lights and the floor's texture of `povray_flume.scene_pov`, the objects in
-    `body`, and a grey `background` (None: black; the scene's floor fills the view)."""
+    `body`, and a grey `background` (None: black), which the water's surface reflects."""
     parts = ["#version 3.7;", "global_settings { assumed_gamma 1.0 max_trace_level 8 }", camera,
              "light_source { <0.6, -0.4, 3.5> rgb 1.0 }", "light_source { <-0.5, 1.2, 3.0> rgb 0.35 shadowless }",
              ("#declare Speckle = pigment { granite colour_map { [0 rgb <0.45, 0.38, 0.4>] [1 rgb <0.82, 0.74, 0.76>] }"
@@ -143,6 +144,11 @@ def _scene(camera: str, body: list[str], background: float | None = None) -> str
     if background is not None:
         parts.append(f"background {{ rgb {background} }}")
     return "\n".join(parts + body) + "\n"
+
+
+def _rubble_scene(stones: dict, keep: np.ndarray, level: float | None, grey: bool, camera: str) -> str:
+    """`povray_flume`'s breakwater scene through `camera`."""
+    return pf.scene_pov(stones, keep, level, camera, grey)
 
 
 def floor_pov(top: float = 0.0) -> str:
@@ -189,11 +195,11 @@ def main(argv=None) -> None:
           f"converging {args.converge_deg} deg, f {args.focal_px} px", flush=True)
     cams = {s: pf.camera_pov(K, np.array(rig[s]["R"]), np.array(rig[s]["t"]), size) for s in "LR"}
     (args.out / "calib").mkdir(parents=True, exist_ok=True)
-    shots = {}
+    shots = {}  # image name -> the scene's text for a camera's POV-Ray text
     for k, (R, c) in enumerate(board_poses(K, rig, args.boards, args.seed, size=size)):
-        shots[f"calib/calib_{k:02d}"] = ([board_pov(R, c)], 0.25)
+        shots[f"calib/calib_{k:02d}"] = partial(_scene, body=[board_pov(R, c)], background=0.25)
     origin = np.array([*AIM, 0.0]) - [4 * SQUARE, 2.5 * SQUARE, 0]  # the board's middle under the rig
-    shots["origin"] = ([floor_pov(-0.004), board_pov(np.eye(3), origin)], None)
+    shots["origin"] = partial(_scene, body=[floor_pov(-0.004), board_pov(np.eye(3), origin)])
     stones = pf.rocks(args.seed)
     hole_xy = (pf.TOE + pf.SLOPE * (args.level - 0.02), 0.3)
     lost = pf.hole(stones, hole_xy)
@@ -201,13 +207,15 @@ def main(argv=None) -> None:
     for name in args.scenes.split(","):
         if name == "board_wet":
             scenes[name] = {"rig": "main", "water_level": args.level, "kind": "plane", "plane": BOARD_PLANE}
-            shots[name] = ([floor_pov(), sloping_board_pov(BOARD_PLANE), water_pov(args.level)], 0.6)
+            shots[name] = partial(_scene, body=[floor_pov(), sloping_board_pov(BOARD_PLANE), water_pov(args.level)],
+                                  background=0.6)  # the sky the water reflects
             continue
         kind, stage, wet = name.split("_")
         level = args.level if wet == "wet" else None
         scenes[name] = {"rig": "main", "water_level": level, "kind": "heightfield", "stage": stage,
                         "removed": np.flatnonzero(lost).tolist() if stage == "III" else []}
-        shots[name] = (stones, ~lost if stage == "III" else np.ones(len(lost), bool), level, kind == "grey")
+        keep = ~lost if stage == "III" else np.ones(len(lost), bool)
+        shots[name] = partial(_rubble_scene, stones, keep, level, kind == "grey")
     x = np.round(np.arange(-0.1, 1.1005, 0.001), 6)
     y = np.round(np.arange(-0.05, 0.6495, 0.001), 6)
     if not (args.out / "breakwater_gt.npz").exists():
@@ -221,12 +229,7 @@ def main(argv=None) -> None:
             if out.exists():
                 continue
             t0 = time.perf_counter()
-            if len(shot) == 2:
-                body, background = shot
-                scene = _scene(cams[side], body, background)
-            else:
-                scene = pf.scene_pov(shot[0], shot[1], shot[2], cams[side], shot[3])
-            pf.render(scene, out, size)
+            pf.render(shot(cams[side]), out, size)
             print(f"{out.relative_to(args.out)}: {time.perf_counter() - t0:.0f} s", flush=True)
     truth = {"K": K.tolist(), "size": list(size), "n_water": 1.333, "square": SQUARE, "pattern": list(PATTERN),
              "origin": origin.tolist(), "images": "jpg (quality 95)", "rigs": {"main": rig}, "scenes": scenes,
