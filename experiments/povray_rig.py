@@ -14,7 +14,7 @@ It writes `breakwater_gt.npz` and a `truth.json` that `flume-score --data DIR` r
 (`--only calibration,board,breakwater,grey,wetdry,refine-dem,refine-floor,damage,speed`). Nothing here uses
 jaxstereo's geometry: the cameras are POV-Ray's own pinholes (`povray_flume.camera_pov`).
 
-Run: python experiments/povray_rig.py OUT [--height 2.3] [--baseline 0.25] [--across] [--converge-deg 3]
+Run: python experiments/povray_rig.py OUT [--height 2.3] [--baseline 0.25] [--across] [--step 0] [--converge-deg 3]
      [--focal-px 3000] [--size 1728 1152] [--level 0.15] [--seed 7]
 """
 
@@ -51,18 +51,19 @@ def _turn(axis, angle: float) -> np.ndarray:
 
 
 def make_rig(height: float, baseline: float, across: bool, converge_deg: float, seed: int,
-             aim=AIM, jitter_deg: float = 0.4) -> dict:
-    """Two nadir cameras `height` m above the floor, `baseline` m apart along the flume (x) or `across` it (y),
-    centred over `aim` (x, y) m, each toed in by half of `converge_deg` toward the other, then turned by a normal
-    random rotation of `jitter_deg` degrees per axis (`seed`). **Returns:** {"L": {"R", "t"}, "R": {...}}, world ->
-    camera (OpenCV axes: x right, y down, z forward), metres, as lists."""
+             aim=AIM, jitter_deg: float = 0.4, step: float = 0.0) -> dict:
+    """Two nadir cameras `height` m above the floor, `baseline` m apart (horizontally) along the flume (x) or
+    `across` it (y), centred over `aim` (x, y) m, each toed in by half of `converge_deg` toward the other, then turned
+    by a normal random rotation of `jitter_deg` degrees per axis (`seed`); the right camera `step` m higher than the
+    left. **Returns:** {"L": {"R", "t"}, "R": {...}}, world -> camera (OpenCV axes: x right, y down, z forward),
+    metres, as lists."""
     rng = np.random.default_rng(seed)
     base = np.array([0.0, 1.0, 0.0]) if across else np.array([1.0, 0.0, 0.0])
     down = np.array([0.0, 0.0, -1.0])
     nadir = np.stack([base, np.cross(down, base), down])  # rows: the camera's axes in the world
     rig = {}
     for side, sign in (("L", -1.0), ("R", 1.0)):
-        centre = np.array([aim[0], aim[1], height]) + sign * baseline / 2 * base
+        centre = np.array([aim[0], aim[1], height + (step if side == "R" else 0.0)]) + sign * baseline / 2 * base
         toe_in = _turn(nadir[1], -sign * np.radians(converge_deg) / 2)  # about the camera's y axis, toward the other
         tilt, turn, roll = rng.normal(0, np.radians(jitter_deg), 3)
         jitter = _turn([1, 0, 0], tilt) @ _turn([0, 1, 0], turn) @ _turn([0, 0, 1], roll)
@@ -160,15 +161,17 @@ def floor_pov(top: float = 0.0) -> str:
 def water_pov(level: float) -> str:
     """Fresh water (index 1.333, Fresnel reflection) up to z = `level` (m)."""
     return (f"box {{ <-1.5, -1.5, -0.1>, <2.5, 2.5, {level}> material {{ texture {{ pigment {{ rgbf 1 }} "
-            "finish { ambient 0 diffuse 0 reflection { 0, 1 fresnel on } conserve_energy } } interior { ior 1.333 } } }")
+            "finish { ambient 0 diffuse 0 reflection { 0, 1 fresnel on } conserve_energy } } "
+            "interior { ior 1.333 } } }")
 
 
 def sloping_board_pov(plane: dict) -> str:
     """The development flume's sloping board: from the floor at x0 up `drop` over `length`, then level for 0.3 m,
     across y 0 to `width`; textured like the floor."""
     x0, x1, top = plane["x0"], plane["x0"] + plane["length"], plane["drop"]
-    return (f"prism {{ linear_sweep linear_spline 0, {plane['width']}, 5, <{x0}, 0>, <{x1}, {top}>, <{x1 + 0.3}, {top}>, "
-            f"<{x1 + 0.3}, 0>, <{x0}, 0> texture {{ pigment {{ Speckle }} finish {{ ambient 0.3 diffuse 0.7 }} }} }}")
+    return (f"prism {{ linear_sweep linear_spline 0, {plane['width']}, 5, <{x0}, 0>, <{x1}, {top}>, "
+            f"<{x1 + 0.3}, {top}>, <{x1 + 0.3}, 0>, <{x0}, 0> "
+            "texture { pigment { Speckle } finish { ambient 0.3 diffuse 0.7 } } }")
 
 
 def main(argv=None) -> None:
@@ -177,6 +180,7 @@ def main(argv=None) -> None:
     parser.add_argument("--height", type=float, default=2.3, help="the cameras' height above the floor, m")
     parser.add_argument("--baseline", type=float, default=0.25, help="distance between the cameras, m")
     parser.add_argument("--across", action="store_true", help="baseline across the flume (y) instead of along it")
+    parser.add_argument("--step", type=float, default=0.0, help="the right camera's height over the left's, m")
     parser.add_argument("--converge-deg", type=float, default=3.0, help="angle between the optical axes, degrees")
     parser.add_argument("--focal-px", type=float, default=3000.0, help="focal length, pixels")
     parser.add_argument("--size", type=int, nargs=2, default=SIZE, metavar=("W", "H"), help="image size, pixels")
@@ -190,9 +194,10 @@ def main(argv=None) -> None:
         raise SystemExit("povray_rig: no `povray` on the PATH (POV-Ray 3.7: apt install povray)")
     size = tuple(args.size)
     K = np.array([[args.focal_px, 0, (size[0] - 1) / 2], [0, args.focal_px, (size[1] - 1) / 2], [0, 0, 1]])
-    rig = make_rig(args.height, args.baseline, args.across, args.converge_deg, args.seed)
+    rig = make_rig(args.height, args.baseline, args.across, args.converge_deg, args.seed, step=args.step)
     print(f"rig: {args.height} m high, baseline {args.baseline} m {'across' if args.across else 'along'} the flume, "
-          f"converging {args.converge_deg} deg, f {args.focal_px} px", flush=True)
+          f"converging {args.converge_deg} deg, the right camera {args.step} m higher, f {args.focal_px} px",
+          flush=True)
     cams = {s: pf.camera_pov(K, np.array(rig[s]["R"]), np.array(rig[s]["t"]), size) for s in "LR"}
     (args.out / "calib").mkdir(parents=True, exist_ok=True)
     shots = {}  # image name -> the scene's text for a camera's POV-Ray text

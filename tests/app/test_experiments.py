@@ -298,3 +298,6 @@ def test_povray_rig_makes_the_rig_asked_and_boards_both_cameras_see_whole():
                 assert (depth > 0).all()
                 assert (uv >= pr.MARGIN_PX).all() and (uv <= np.array(pr.SIZE) - 1 - pr.MARGIN_PX).all()
                 assert Rb[:, 2] @ (centre[s] - c) > 0  # the printed face toward the camera
+    stepped = pr.make_rig(2.1, 0.2, False, 2.0, seed=53, step=0.08)
+    centres = [-np.array(stepped[s]["R"]).T @ np.array(stepped[s]["t"]) for s in "LR"]
+    assert np.allclose(centres[1] - centres[0], [0.2, 0.0, 0.08], atol=1e-12)  # the right camera 8 cm higher
