@@ -128,6 +128,9 @@ def test_refine_broken_input(files, tmp_path, capfd):
     code = main(["refine", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
                  "--water-level-guess", "3.0", "-o", str(out / "rig.json")])
     _check(capfd, code, "below the water plane", out)
+    code = main(["refine", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
+                 "--water-level-guess", "0.17", "--control", "floor", "--floor-x", "4", "5", "-o", str(out / "rig.json")])
+    _check(capfd, code, "no correspondence lies in the floor region x 4.000 to 5.000 m", out)  # out of view
 
 
 def test_calibrate_broken_input(files, tmp_path, capfd):
