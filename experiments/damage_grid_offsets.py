@@ -59,7 +59,8 @@ def main(argv=None) -> None:
     def near(P):
         return P[np.abs(P[:, 1] - yc) < HALF_WIDTH]
 
-    surveyed = {st: near(to_truth(np.load(Path(args.work) / f"bw_{st}_wet_exact.npz")["points"])) for st in ("I", "III")}
+    surveyed = {st: near(to_truth(np.load(Path(args.work) / f"bw_{st}_wet_exact.npz")["points"]))
+                for st in ("I", "III")}
     true = {st: near(np.stack([X.ravel(), Y.ravel(), g[st].astype(float).ravel()], 1)) for st in ("I", "III")}
     truth = fs.true_profile_damage(g, bw, yc)
     sp, rows = args.spacing, []
@@ -69,14 +70,15 @@ def main(argv=None) -> None:
             y = np.arange(yc - HALF_WIDTH + fy * sp, yc + HALF_WIDTH, sp)
             dems = {}
             for st in ("I", "III"):
-                exact = grid_median(true[st], sp, x, y)
+                exact = grid_median(true[st], sp, x, y) if args.surface != "survey" else None
                 dem = exact if args.surface == "truth" else grid_median(surveyed[st], sp, x, y)
                 if args.surface == "oracle":
                     dem = DEM(x, y, np.where(np.isfinite(dem.z), dem.z, exact.z), sp)
                 dems[st] = fill_holes(dem, MAX_GAP)
             result = stretch_damage(dems["I"], dems["III"], bw["dn50"], bw["slope"], level, (bw["toe"], 0.0), 0.005)
             y_profile, p = min(result.profiles, key=lambda item: abs(item[0] - yc))
-            rows.append((fx * sp, fy * sp, y_profile - yc, (p.A_e / truth["Ae"] - 1) * 100, (p.d_e - truth["de"]) * 1e3))
+            rows.append((fx * sp, fy * sp, y_profile - yc, (p.A_e / truth["Ae"] - 1) * 100,
+                         (p.d_e - truth["de"]) * 1e3))
     print(f"{args.data}: {args.surface}, {sp * 1e3:g} mm cells; truth A_e {truth['Ae'] * 1e4:.2f} cm2, d_e "
           f"{truth['de'] * 1e3:.1f} mm")
     print("| cells moved x, y (mm) | profile from the centre (mm) | A_e error (%) | d_e error (mm) |")

@@ -132,16 +132,35 @@ def camera_pov(K: np.ndarray, R: np.ndarray, t: np.ndarray, size) -> str:
             f"up {_v(-h / fy * ey)} }}")
 
 
+def header_pov(camera: str, background: str | None = "<0.55, 0.6, 0.7>") -> str:
+    """A scene's first lines: the version, `camera`, the `background` colour (POV-Ray's rgb text; None: black),
+    the two lights and the floor's `Speckle` pigment."""
+    parts = ["#version 3.7;", "global_settings { assumed_gamma 1.0 max_trace_level 8 }", camera]
+    if background is not None:
+        parts.append(f"background {{ rgb {background} }}")
+    parts += ["light_source { <0.6, -0.4, 3.5> rgb 1.0 }",
+              "light_source { <-0.5, 1.2, 3.0> rgb 0.35 shadowless }",
+              ("#declare Speckle = pigment { granite colour_map { [0 rgb <0.45, 0.38, 0.4>] "
+               "[1 rgb <0.82, 0.74, 0.76>] } scale 0.015 }")]
+    return "\n".join(parts)
+
+
+def floor_pov(top: float = 0.0) -> str:
+    """The flume's floor, its top face at z = `top` (m)."""
+    return (f"box {{ <-1.5, -1.5, -0.05>, <2.5, 2.5, {top:g}> texture {{ pigment {{ Speckle }} "
+            "finish { ambient 0.3 diffuse 0.7 } } }")
+
+
+def water_pov(level: float) -> str:
+    """Fresh water (index 1.333, Fresnel reflection) up to z = `level` (m)."""
+    return (f"box {{ <-1.5, -1.5, -0.1>, <2.5, 2.5, {level}> material {{ texture {{ pigment {{ rgbf 1 }} "
+            "finish { ambient 0 diffuse 0 reflection { 0, 1 fresnel on } conserve_energy } } "
+            "interior { ior 1.333 } } }")
+
+
 def scene_pov(stones: dict, keep: np.ndarray, level: float | None, camera: str, grey: bool) -> str:
     """The POV-Ray scene: camera, light, floor, core, the kept rocks, and the water up to `level` (None: dry)."""
-    parts = ["#version 3.7;", "global_settings { assumed_gamma 1.0 max_trace_level 8 }", camera,
-             "background { rgb <0.55, 0.6, 0.7> }",
-             "light_source { <0.6, -0.4, 3.5> rgb 1.0 }",
-             "light_source { <-0.5, 1.2, 3.0> rgb 0.35 shadowless }",
-             ("#declare Speckle = pigment { granite colour_map { [0 rgb <0.45, 0.38, 0.4>] [1 rgb <0.82, 0.74, 0.76>] }"
-              " scale 0.015 }"),
-             ("box { <-1.5, -1.5, -0.05>, <2.5, 2.5, 0> texture { pigment { Speckle } finish { ambient 0.3 diffuse 0.7 }"
-              " } }")]
+    parts = [header_pov(camera), floor_pov()]
     top = HEIGHT - 2 * DN50
     x_top = TOE + SLOPE * HEIGHT
     x_foot = TOE + SLOPE * 2 * DN50
@@ -158,9 +177,7 @@ def scene_pov(stones: dict, keep: np.ndarray, level: float | None, camera: str, 
                      f"[0 rgb {_v(0.72 * colour)}] [1 rgb {_v(np.minimum(1.12 * colour, 1))}] }} scale 0.02 "
                      f"translate {_v(c * 37)} }} finish {{ ambient 0.22 diffuse 0.75 specular 0.05 }} }} }}")
     if level is not None:
-        parts.append(f"box {{ <-1.5, -1.5, -0.1>, <2.5, 2.5, {level}> material {{ texture {{ pigment {{ rgbf 1 }} "
-                     "finish { ambient 0 diffuse 0 reflection { 0, 1 fresnel on } conserve_energy } } "
-                     "interior { ior 1.333 } } }")
+        parts.append(water_pov(level))
     return "\n".join(parts) + "\n"
 
 

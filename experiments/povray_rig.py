@@ -28,6 +28,7 @@ import time
 from functools import partial
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: `experiments` and the checkout
@@ -44,10 +45,8 @@ BOARD_PLANE = {"x0": 0.12, "length": 0.65, "drop": 0.28, "width": 0.6}  # the de
 
 
 def _turn(axis, angle: float) -> np.ndarray:
-    """Rotation matrix (3, 3) by `angle` radians about the unit vector `axis` (Rodrigues)."""
-    k = np.asarray(axis, float) / np.linalg.norm(axis)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    """Rotation matrix (3, 3) by `angle` radians about `axis`."""
+    return cv2.Rodrigues(np.asarray(axis, float) / np.linalg.norm(axis) * angle)[0]
 
 
 def make_rig(height: float, baseline: float, across: bool, converge_deg: float, seed: int,
@@ -136,33 +135,14 @@ def board_pov(R: np.ndarray, c: np.ndarray) -> str:
 
 
 def _scene(camera: str, body: list[str], background: float | None = None) -> str:
-    """A POV-Ray scene: `camera`, the lights and the floor's texture of `povray_flume.scene_pov`, the objects in
-    `body`, and a grey `background` (None: black), which the water's surface reflects."""
-    parts = ["#version 3.7;", "global_settings { assumed_gamma 1.0 max_trace_level 8 }", camera,
-             "light_source { <0.6, -0.4, 3.5> rgb 1.0 }", "light_source { <-0.5, 1.2, 3.0> rgb 0.35 shadowless }",
-             ("#declare Speckle = pigment { granite colour_map { [0 rgb <0.45, 0.38, 0.4>] [1 rgb <0.82, 0.74, 0.76>] }"
-              " scale 0.015 }")]
-    if background is not None:
-        parts.append(f"background {{ rgb {background} }}")
-    return "\n".join(parts + body) + "\n"
+    """A POV-Ray scene: `povray_flume.header_pov` with a grey `background` (None: black), which the water's surface
+    reflects, then the objects in `body`."""
+    return "\n".join([pf.header_pov(camera, None if background is None else f"{background:g}"), *body]) + "\n"
 
 
 def _rubble_scene(stones: dict, keep: np.ndarray, level: float | None, grey: bool, camera: str) -> str:
     """`povray_flume`'s breakwater scene through `camera`."""
     return pf.scene_pov(stones, keep, level, camera, grey)
-
-
-def floor_pov(top: float = 0.0) -> str:
-    """The flume's floor, its top face at z = `top` (m)."""
-    return (f"box {{ <-1.5, -1.5, -0.05>, <2.5, 2.5, {top}> texture {{ pigment {{ Speckle }} "
-            "finish { ambient 0.3 diffuse 0.7 } } }")
-
-
-def water_pov(level: float) -> str:
-    """Fresh water (index 1.333, Fresnel reflection) up to z = `level` (m)."""
-    return (f"box {{ <-1.5, -1.5, -0.1>, <2.5, 2.5, {level}> material {{ texture {{ pigment {{ rgbf 1 }} "
-            "finish { ambient 0 diffuse 0 reflection { 0, 1 fresnel on } conserve_energy } } "
-            "interior { ior 1.333 } } }")
 
 
 def sloping_board_pov(plane: dict) -> str:
@@ -204,7 +184,7 @@ def main(argv=None) -> None:
     for k, (R, c) in enumerate(board_poses(K, rig, args.boards, args.seed, size=size)):
         shots[f"calib/calib_{k:02d}"] = partial(_scene, body=[board_pov(R, c)], background=0.25)
     origin = np.array([*AIM, 0.0]) - [4 * SQUARE, 2.5 * SQUARE, 0]  # the board's middle under the rig
-    shots["origin"] = partial(_scene, body=[floor_pov(-0.004), board_pov(np.eye(3), origin)])
+    shots["origin"] = partial(_scene, body=[pf.floor_pov(-0.004), board_pov(np.eye(3), origin)])
     stones = pf.rocks(args.seed)
     hole_xy = (pf.TOE + pf.SLOPE * (args.level - 0.02), 0.3)
     lost = pf.hole(stones, hole_xy)
@@ -212,8 +192,8 @@ def main(argv=None) -> None:
     for name in args.scenes.split(","):
         if name == "board_wet":
             scenes[name] = {"rig": "main", "water_level": args.level, "kind": "plane", "plane": BOARD_PLANE}
-            shots[name] = partial(_scene, body=[floor_pov(), sloping_board_pov(BOARD_PLANE), water_pov(args.level)],
-                                  background=0.6)  # the sky the water reflects
+            body = [pf.floor_pov(), sloping_board_pov(BOARD_PLANE), pf.water_pov(args.level)]
+            shots[name] = partial(_scene, body=body, background=0.6)  # 0.6: the sky the water reflects
             continue
         kind, stage, wet = name.split("_")
         level = args.level if wet == "wet" else None
