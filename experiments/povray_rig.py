@@ -189,7 +189,7 @@ def main(argv=None) -> None:
     hole_xy = (pf.TOE + pf.SLOPE * (args.level - 0.02), 0.3)
     lost = pf.hole(stones, hole_xy)
     scenes = {}
-    for name in args.scenes.split(","):
+    for name in filter(None, args.scenes.split(",")):
         if name == "board_wet":
             scenes[name] = {"rig": "main", "water_level": args.level, "kind": "plane", "plane": BOARD_PLANE}
             body = [pf.floor_pov(), sloping_board_pov(BOARD_PLANE), pf.water_pov(args.level)]

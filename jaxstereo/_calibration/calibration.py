@@ -19,7 +19,7 @@ from .._geometry.precision import float64
 from .._stereo.row_bands import available_cores
 from .boards import BoardSpec
 from .detect import Detection, detect_board
-from .pose_covariance import covariance_from_residuals, right_pose_covariance
+from .pose_covariance import covariance_with_smooth_errors, right_pose_covariance
 from .rig import Rig
 
 log = logging.getLogger("jaxstereo")
@@ -356,17 +356,30 @@ def world_frame_rig(
     return rig, report
 
 
+# The corners' smooth error over one board (pixels RMS per axis, see `covariance_with_smooth_errors`). Against
+# the exact corners of POV-Ray's origin boards (11 flumes, 22 images), an offset and gradients fitted to each image's
+# corner errors leave 0.009 px RMS beyond what their 0.03 px of independent noise explains, and 0.02-0.03 px on a
+# few. With independent noise alone the frame's tilt erred by 1.7 times its std (RMS over the flumes' 24 axes, 2
+# past 3 std); with 0.01 px by 1.07 times, 3 past 2 std; with 0.015 px by 0.83 times, 1 past 2 std
+# (`experiments/frame_tilt.py`).
+SMOOTH_CORNER_ERROR_PX = 0.015
+
+
 def _frame_covariance(left: Camera, right: Camera, obj_l, px_l, obj_r, px_r) -> dict:
     """How well the origin board fixes the world frame: the covariance (6, 6) of a small move of the frame,
     `X -> X + w x X + v` (w radians, v metres, world axes), from the board corners' reprojection in both
-    images with the cameras' calibration held, the pixel noise estimated from the residuals themselves.
+    images with the cameras' calibration held, the pixel noise estimated from the residuals themselves, and a
+    smooth error shared by each image's corners of `SMOOTH_CORNER_ERROR_PX` (the detector's, on top of that
+    noise; it dominates the tilt's std).
 
     **Returns:** `{"frame_cov": 6x6 list, "frame_tilt_std_mrad": [about x, about y], "frame_height_std_m":
     at the origin, "frame_noise_px"}` for the rig's provenance; `refine` turns it into the floor's height
     uncertainty where its control points lie.
     """
-    cov, noise = covariance_from_residuals(_frame_residuals, 6, left, right, jnp.asarray(obj_l), jnp.asarray(obj_r),
-                                           jnp.asarray(np.concatenate([px_l, px_r])))
+    pixels = np.concatenate([px_l, px_r])
+    image = np.repeat([0, 1], [len(px_l), len(px_r)])
+    cov, noise = covariance_with_smooth_errors(_frame_residuals, 6, pixels, image, SMOOTH_CORNER_ERROR_PX, left, right,
+                                               jnp.asarray(obj_l), jnp.asarray(obj_r), jnp.asarray(pixels))
     if not np.all(np.isfinite(cov)):  # too few corners to fix the frame: no record, no frame term in refine
         return {}
     return {"frame_cov": cov.tolist(), "frame_tilt_std_mrad": [1e3 * float(np.sqrt(cov[k, k])) for k in (0, 1)],

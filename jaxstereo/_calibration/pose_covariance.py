@@ -3,7 +3,8 @@
 `jaxstereo refine` may free the right camera's pose, and on rough scenes a tiny move of it (a few
 thousandths of a degree) trades against millimetres of water level. The calibration already knows the
 pose to about that precision; this covariance, recorded in the rig, lets `refine` hold the pose to it
-(a robust prior: a real move of the camera still comes through).
+(a robust prior: a real move of the camera still comes through). The world frame's covariance from the
+origin board (`calibration._frame_covariance`) uses `covariance_with_smooth_errors` from here.
 """
 
 from __future__ import annotations
@@ -71,15 +72,56 @@ def covariance_from_residuals(residuals, n_params: int, *args) -> tuple[np.ndarr
 
     **Returns:** `(cov, noise_px)`; `cov` is all inf when the parameters are not determined.
     """
-    value, jacobian = _compiled(residuals)
-    p0 = jnp.zeros(n_params)
-    r0 = np.asarray(value(p0, *args))
-    J = np.asarray(jacobian(p0, *args))
-    noise = float(np.sqrt(float(r0 @ r0) / max(r0.size - n_params, 1)))
+    J, noise = _jacobian_and_noise(residuals, n_params, args)
     try:
         cov = noise**2 * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         return np.full((n_params, n_params), np.inf), noise
+    return (cov if np.all(np.isfinite(cov)) else np.full((n_params, n_params), np.inf)), noise
+
+
+def _jacobian_and_noise(residuals, n_params: int, args) -> tuple[np.ndarray, float]:
+    """The Jacobian (m, n_params) of `residuals(p, *args)` at `p = 0` and the pixel noise its residuals there
+    give (m - n_params degrees of freedom)."""
+    value, jacobian = _compiled(residuals)
+    p0 = jnp.zeros(n_params)
+    r0 = np.asarray(value(p0, *args))
+    noise = float(np.sqrt(float(r0 @ r0) / max(r0.size - n_params, 1)))
+    return np.asarray(jacobian(p0, *args)), noise
+
+
+@float64
+def covariance_with_smooth_errors(residuals, n_params: int, pixels: np.ndarray, image: np.ndarray,
+                                  smooth_px: float, *args) -> tuple[np.ndarray, float]:
+    """`covariance_from_residuals` for corners whose errors are not all independent: each image's corners also
+    share a smooth error, an offset and a gradient across the corners in u and in v, of `smooth_px` RMS over
+    them per axis (pixels). Such an error barely shows in the residuals (the parameters take most of it up) but
+    moves the parameters: on one board, a gradient of a hundredth of a pixel across it tilts the board's plane
+    as much as the independent noise of all its corners does.
+
+    **Arguments:** `residuals(p, *args)` of layout (n, 2) raveled, as `covariance_from_residuals`; `pixels`
+    (n, 2) the corners (pixels); `image` (n,) which image each corner was seen in (any integer labels).
+    **Returns:** `(cov, noise_px)`; `cov` all inf when the parameters are not determined.
+    """
+    J, noise = _jacobian_and_noise(residuals, n_params, args)
+    try:
+        inverse = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return np.full((n_params, n_params), np.inf), noise
+    # The smooth errors' basis: per image and axis, an offset and the corners' centred, scaled u and v
+    # (each of unit RMS over the image's corners), each of variance smooth_px^2 / 3.
+    pixels = np.asarray(pixels, dtype=np.float64)
+    labels = np.unique(image)
+    basis = np.zeros((2 * len(pixels), 6 * len(labels)))
+    for k, label in enumerate(labels):
+        rows = np.flatnonzero(image == label)
+        centred = pixels[rows] - pixels[rows].mean(axis=0)
+        spread = np.maximum(np.sqrt(np.mean(centred**2, axis=0)), 1e-9)
+        terms = np.column_stack([np.ones(len(rows)), centred / spread])
+        for axis in range(2):
+            basis[2 * rows + axis, 6 * k + 3 * axis: 6 * k + 3 * axis + 3] = terms
+    gain = inverse @ J.T @ basis  # parameters per unit coefficient of the smooth errors
+    cov = noise**2 * inverse + (smooth_px**2 / 3.0) * gain @ gain.T
     return (cov if np.all(np.isfinite(cov)) else np.full((n_params, n_params), np.inf)), noise
 
 
