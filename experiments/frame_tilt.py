@@ -7,9 +7,11 @@ For each flume folder of `povray_rig.py` (or the development flume) given: detec
 `focal_std_rel` too), for each value of the corners' smooth error given (`--smooth-px`, the frame covariance's
 `SMOOTH_CORNER_ERROR_PX`; 0: independent corner noise alone). The last lines give the errors in units of their
 std: the RMS over every axis and the count past 2 and 3 std, what a std that covers the real error keeps near 1,
-5 % and 0.3 %.
+5 % and 0.3 %. With `--floor`, the floor around the origin board too: the origin pair surveyed densely in air
+(`reconstruct`), a plane fitted to the points outside the board (two squares' margin) by least squares with 3-MAD
+rejection, and its tilt's error beside the board's (mrad RMS over the axes, and of their mean).
 
-Run: python experiments/frame_tilt.py FLUME [FLUME ...] [--smooth-px 0 0.01]
+Run: python experiments/frame_tilt.py FLUME [FLUME ...] [--smooth-px 0 0.01] [--floor]
      (each FLUME with calib/, origin_{L,R}.jpg and truth.json)
 """
 
@@ -60,6 +62,30 @@ def frame_errors(rig, report: dict, truth: dict) -> dict:
             "height_std": height_std, "noise": report.get("frame_noise_px", np.nan)}
 
 
+def floor_tilt_errors(rig, report: dict, board, folder: Path, truth: dict) -> np.ndarray:
+    """The tilt error (mrad, slopes of z along our x and y) of the floor's plane around the origin board, surveyed
+    from the origin pair, and the board's own (its plane is z = 0): `[[floor x, floor y], [board x, board y]]`."""
+    from jaxstereo import reconstruct
+
+    ext = ".jpg" if (folder / "origin_L.jpg").exists() else ".png"
+    left, right = (cv2.cvtColor(cv2.imread(str(folder / f"origin_{s}{ext}")), cv2.COLOR_BGR2RGB) for s in "LR")
+    points = reconstruct(left, right, rig)[0].points
+    margin = 2 * truth["square"]
+    lo, hi = board.corners[:, :2].min(axis=0) - margin, board.corners[:, :2].max(axis=0) + margin
+    xy = points[:, :2] * (np.array([1.0, -1.0]) if report["z_flipped"] else 1.0)  # board axes
+    on_board = np.all((xy > lo) & (xy < hi), axis=1)
+    floor = points[~on_board & (np.abs(points[:, 2]) < 0.03)]
+    design = np.column_stack([np.ones(len(floor)), floor[:, :2]])
+    keep = np.ones(len(floor), bool)
+    for _ in range(5):
+        coef = np.linalg.lstsq(design[keep], floor[keep, 2], rcond=None)[0]
+        residual = floor[:, 2] - design @ coef
+        keep = np.abs(residual) < 3 * 1.4826 * np.median(np.abs(residual[keep]))
+    up = np.asarray(rig.left.pose.R).T @ np.asarray(truth["rigs"]["main"]["L"]["R"]) @ [0.0, 0.0, 1.0]
+    true_slope = -up[:2] / up[2]  # the true floor's slopes in our frame
+    return 1e3 * np.array([coef[1:] - true_slope, -true_slope])
+
+
 def main(argv=None) -> None:
     from jaxstereo import world_frame_rig
     from jaxstereo._calibration import calibration
@@ -68,7 +94,9 @@ def main(argv=None) -> None:
     parser.add_argument("flumes", nargs="+", type=Path)
     parser.add_argument("--smooth-px", type=float, nargs="+", default=[calibration.SMOOTH_CORNER_ERROR_PX],
                         help="the corners' smooth error (px) for the frame's covariance, one run each")
+    parser.add_argument("--floor", action="store_true", help="the floor's plane around the board too (slower)")
     args = parser.parse_args(argv)
+    floors = []
     z = {s: {"tilt": [], "height": []} for s in args.smooth_px}
     print("| flume | smooth error (px) | tilt error x / y (mrad) | its std x / y | height error (mm) | its std | "
           "noise (px) |")
@@ -83,11 +111,23 @@ def main(argv=None) -> None:
             tilt, std = e["tilt"], e["tilt_std"]
             print(f"| {folder.name} | {smooth:g} | {tilt[0]:+.2f} / {tilt[1]:+.2f} | {std[0]:.2f} / {std[1]:.2f} | "
                   f"{e['height']:+.3f} | {e['height_std']:.3f} | {e['noise']:.3f} |", flush=True)
+        if args.floor:
+            rig, report = world_frame_rig(stereo, board, origin_left, origin_right)
+            floors.append(floor_tilt_errors(rig, report, board, folder, truth))
+            (fx, fy), (bx, by) = floors[-1]
+            print(f"{folder.name}: tilt error of the floor's plane {fx:+.2f} / {fy:+.2f} mrad, of the board's "
+                  f"{bx:+.2f} / {by:+.2f}", flush=True)
     for smooth in args.smooth_px:
         for name, values in z[smooth].items():
             values = np.asarray(values)
             print(f"smooth error {smooth:g} px, {name}: errors / std RMS {np.sqrt(np.mean(values**2)):.2f} over "
                   f"{len(values)}, past 2 std {np.sum(abs(values) > 2)}, past 3 std {np.sum(abs(values) > 3)}")
+    if floors:
+        floor, board = (np.concatenate([f[k] for f in floors]) for k in (0, 1))
+        rms = {name: float(np.sqrt(np.mean(v**2))) for name, v in
+               (("floor", floor), ("board", board), ("mean", (floor + board) / 2))}
+        print(f"tilt error RMS over {len(floor)} axes (mrad): the floor's plane {rms['floor']:.2f}, the board's "
+              f"{rms['board']:.2f}, their mean {rms['mean']:.2f}; correlation {np.corrcoef(floor, board)[0, 1]:.2f}")
 
 
 if __name__ == "__main__":
