@@ -301,3 +301,31 @@ def test_povray_rig_makes_the_rig_asked_and_boards_both_cameras_see_whole():
     stepped = pr.make_rig(2.1, 0.2, False, 2.0, seed=53, step=0.08)
     centres = [-np.array(stepped[s]["R"]).T @ np.array(stepped[s]["t"]) for s in "LR"]
     assert np.allclose(centres[1] - centres[0], [0.2, 0.0, 0.08], atol=1e-12)  # the right camera 8 cm higher
+
+
+def test_frame_tilt_reads_a_known_tilt_and_height_of_the_world_frame():
+    """`frame_tilt.frame_errors`: a calibrated frame turned from the truth's by 0.5 mrad about its x axis and -0.3 about
+    y, and shifted 0.2 mm along z, reads the turn back (with its sign turned: the rotation from our up to the truth's)
+    and the left camera's height where that move puts it."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    import jaxstereo as js
+    from experiments.frame_tilt import frame_errors
+
+    R_true = np.asarray(js.Pose.look_at([0.3, 0.2, 2.0], [0.35, 0.25, 0.0]).R)
+    t_true = -R_true @ np.array([0.3, 0.2, 2.0])
+    truth = {"rigs": {"main": {"L": {"R": R_true.tolist(), "t": t_true.tolist()}}}}
+    turn = js.so3_exp(np.array([0.5e-3, -0.3e-3, 0.0]))  # our frame from the truth's: X_ours = turn X_true + lift
+    lift = np.array([0.0, 0.0, 0.2e-3])
+    R_ours = R_true @ np.asarray(turn).T
+    t_ours = t_true - R_ours @ lift
+    rig = SimpleNamespace(left=SimpleNamespace(pose=SimpleNamespace(R=R_ours, t=t_ours)), calibration={})
+    report = {"frame_cov": np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8]).tolist()}
+    e = frame_errors(rig, report, truth)
+    np.testing.assert_allclose(e["tilt"], [-0.5, 0.3], atol=2e-3)  # mrad: the turn that brings our up back to the truth's
+    centre_true = np.array([0.3, 0.2, 2.0])
+    expected_height = (np.asarray(turn) @ centre_true + lift)[2] - centre_true[2]
+    np.testing.assert_allclose(e["height"], 1e3 * expected_height, atol=1e-6)
+    np.testing.assert_allclose(e["tilt_std"], [1.0, 1.0])
