@@ -324,7 +324,7 @@ def test_frame_tilt_reads_a_known_tilt_and_height_of_the_world_frame():
     rig = SimpleNamespace(left=SimpleNamespace(pose=SimpleNamespace(R=R_ours, t=t_ours)), calibration={})
     report = {"frame_cov": np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8]).tolist()}
     e = frame_errors(rig, report, truth)
-    np.testing.assert_allclose(e["tilt"], [-0.5, 0.3], atol=2e-3)  # mrad: the turn that brings our up back to the truth's
+    np.testing.assert_allclose(e["tilt"], [-0.5, 0.3], atol=2e-3)  # mrad, from our up back to the truth's
     centre_true = np.array([0.3, 0.2, 2.0])
     expected_height = (np.asarray(turn) @ centre_true + lift)[2] - centre_true[2]
     np.testing.assert_allclose(e["height"], 1e3 * expected_height, atol=1e-6)
