@@ -48,7 +48,8 @@ def _smooth_errors(rng, pixels, smooth_px):
 
 def test_frame_covariance_covers_noise_and_smooth_corner_errors():
     """Over 300 sets of corners, the refitted frame's tilt and height spread as the covariance says (within the
-    sampling error of 300 variances, 8 %), and the covariance with independent noise alone is 1.7 times short."""
+    sampling error of 300 variances, 8 %), and the covariance with independent noise alone falls short (its tilt
+    variances by more than 1.7 times)."""
     rng = np.random.default_rng(5)
     cameras, corners = _rig()
     exact = [_project(c, corners) for c in cameras]
