@@ -8,15 +8,17 @@ happened: on the POV-Ray flume's undamaged model, dry survey against wet, profil
 rock: 1.06) from crevices between rocks that neither survey saw well.
 
 The change itself is smoother than the surfaces: rocks that did not move leave no change at all, and a hole's
-change is its depth, which varies over a stone's size rather than over a cell. So the damage compares the
-surveys where both saw the surface wholly, and each cell that one of them saw only in part or filled from its
-neighbours or straddling a step (its `sigma_coverage` above the tolerance, by default any) takes the change of
-the cells around it that both saw wholly: the median over its 3 x 3 neighbours (one wrong neighbour does not
-carry), else the nearest such cell within a stone's size (Dn50). The after-surface there is the before-surface
-plus that change. On that flume (about 30 % of the cells carried) this brings the undamaged model's largest S to
-0.09 (grey rock: 0.07), and the stage III hole's central A_e reads -1.7 % (-1.1 % comparing every cell) from the
-truth. Where the change is not smooth it carries wrongly: a floor cell that one survey saw wholly takes the
-change across a removed rock's edge that the other saw in part (the README lists the rules tried instead).
+change is its depth, which varies over a stone's size rather than over a cell. So the damage compares the surveys
+where both saw the surface wholly, and each cell that one of them saw only in part or filled from its neighbours or
+straddling a step (its `sigma_coverage` above the tolerance, by default any) takes its change from the cells around
+it that both saw wholly: its own change kept within the range of its 3 x 3 neighbours' (one wrong neighbour does
+not carry, see `_within_neighbours`; the neighbours' median until round 64), else the nearest such cell's within a
+stone's size (Dn50). The after-surface there is the before-surface plus that change. On the POV-Ray development
+flume (about 30 % of the cells carried) the undamaged model's largest S is 0.12 (grey rock: 0.08; 0.09 and 0.07
+with the neighbours' median), and the stage III hole's central A_e reads +0.5 % from the truth (+0.3 % with the
+median, +6.8 % comparing every cell). Where the change is not smooth it carries wrongly: a floor cell that one
+survey saw wholly takes the change across a removed rock's edge that the other saw in part (the README lists the
+rules tried instead).
 """
 
 from __future__ import annotations
@@ -35,8 +37,8 @@ SEEN_TOLERANCE_M = 0.0  # a cell is seen wholly when no part of it went unseen i
 def change_where_seen(before: DEM, after: DEM, tolerance_m: float, reach_m: float) -> tuple[DEM, np.ndarray]:
     """The after-surface to compare with `before`: in each cell that either survey saw only in part, filled or
     across a step (`sigma_coverage` above `tolerance_m` metres, see `coverage.py`), the before-height plus the change
-    (after - before) of the cells both surveys saw wholly: their median over the cell's 3 x 3 neighbours, else
-    the nearest one within `reach_m` metres.
+    (after - before) the cells both surveys saw wholly allow: the cell's own kept within the range of its 3 x 3
+    neighbours' (`_within_neighbours`), else the nearest one's within `reach_m` metres.
 
     **Arguments:** two DEMs on one grid (ny, nx), metres. A DEM without a `sigma_coverage` layer (a DEM of
     the true surface, or one gridded without error bars) counts as seen wholly wherever it has a height.
@@ -62,10 +64,29 @@ def change_where_seen(before: DEM, after: DEM, tolerance_m: float, reach_m: floa
     around = np.stack([padded[row + i, col + j] for i in range(3) for j in range(3)])
     some = np.isfinite(around).any(axis=0)
     estimate = change[rows[row, col], cols[row, col]]  # the nearest seen cell's
-    estimate[some] = nan_median(around[:, some], axis=0)
+    estimate[some] = _within_neighbours((after.z - before.z)[row[some], col[some]], around[:, some])
     z = after.z.copy()
     z[row, col] = before.z[row, col] + estimate
     return dataclasses.replace(after, z=z), carried
+
+
+def _within_neighbours(own: np.ndarray, around: np.ndarray) -> np.ndarray:
+    """Each carried cell's change (m): its own, `own` (k,), where that lies within the changes of its wholly seen
+    neighbours, `around` (9, k) with NaN where not seen, else the nearest end of their range. Neighbours farther
+    than 3 scaled MADs from their median are left out of the range (a mismatch among them does not open it), so
+    where they agree the cell takes their change whatever it read itself.
+
+    The change is smooth, so a cell's true change lies among its neighbours': the range says what a cell seen only
+    in part may read, and its own reading is the best guess inside it. The median of the neighbours instead flattens
+    a hole's deepest cells, which lie beyond most of their neighbours: on five POV-Ray flumes the median read the
+    central profiles' eroded area 0-27 % short (RMS error 9.7 % over 25 profiles against 7.4 % now; d_e 6.8 against
+    6.1 mm), the undamaged model's largest S 0.05-0.15 either way."""
+    median = nan_median(around, axis=0)
+    spread = 3.0 * 1.4826 * nan_median(np.abs(around - median), axis=0)
+    inside = np.isfinite(around) & (np.abs(around - median) <= spread + 1e-12)
+    low = np.min(np.where(inside, around, np.inf), axis=0)
+    high = np.max(np.where(inside, around, -np.inf), axis=0)
+    return np.where(np.isfinite(own), np.clip(own, low, high), median)
 
 
 def on_common_cells(before: DEM, after: DEM) -> tuple[DEM, DEM]:

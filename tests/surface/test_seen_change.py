@@ -98,6 +98,27 @@ def test_one_wrong_neighbour_does_not_carry():
     assert compared.z[9, 9] == -0.05  # seen wholly: compared as surveyed
 
 
+def test_a_narrow_hole_seen_in_part_keeps_its_depth_where_its_neighbours_span_it():
+    # A trench two cells wide and 4 cm deep along x; the after-survey saw its far row wholly and its near row only in
+    # part (the wall hides some of it), read at the trench's depth. Each near-row cell has 3 seen neighbours on the
+    # rim (no change) and 3 on the trench's floor (-4 cm): its own change lies in their range and is kept; their
+    # median, -2 cm, would have made the trench half as deep there.
+    x = np.arange(0.0, 0.1, SPACING)
+    flat = np.zeros((x.size, x.size))
+    trench = np.zeros(flat.shape, bool)
+    trench[9:11, :] = True
+    near = np.zeros(flat.shape, bool)
+    near[9, :] = True
+    before = DEM(x, x, flat, SPACING)
+    after = _survey(x, x, flat - 0.04 * trench, near, flat - 0.04)
+    compared, carried = change_where_seen(before, after, 0.0, DN50)
+    assert np.array_equal(carried, near)
+    np.testing.assert_allclose(compared.z[9, 1:-1], -0.04)
+    # A reading beyond the neighbours' range takes its nearer end: a near-row cell read 3 cm below the floor
+    deeper = _survey(x, x, flat - 0.04 * trench, near, np.where(near, -0.07, flat))
+    np.testing.assert_allclose(change_where_seen(before, deeper, 0.0, DN50)[0].z[9, 1:-1], -0.04)
+
+
 def test_a_cell_with_no_seen_neighbour_takes_the_nearest_within_a_stone_and_no_farther():
     x = np.arange(0.0, 0.2, SPACING)
     flat = np.zeros((x.size, x.size))
