@@ -101,18 +101,20 @@ def main(argv=None) -> None:
     print("| flume | smooth error (px) | tilt error x / y (mrad) | its std x / y | height error (mm) | its std | "
           "noise (px) |")
     print("|---|---:|---:|---:|---:|---:|---:|")
+    default = calibration.SMOOTH_CORNER_ERROR_PX
     for folder in args.flumes:
         stereo, board, origin_left, origin_right, truth = calibrated(folder)
         for smooth in args.smooth_px:
-            calibration.SMOOTH_CORNER_ERROR_PX = smooth
-            e = frame_errors(*world_frame_rig(stereo, board, origin_left, origin_right), truth)
+            calibration.SMOOTH_CORNER_ERROR_PX = smooth  # the frame is the same for each: only its covariance moves
+            rig, report = world_frame_rig(stereo, board, origin_left, origin_right)
+            e = frame_errors(rig, report, truth)
             z[smooth]["tilt"] += list(e["tilt"] / e["tilt_std"])
             z[smooth]["height"].append(e["height"] / e["height_std"])
             tilt, std = e["tilt"], e["tilt_std"]
             print(f"| {folder.name} | {smooth:g} | {tilt[0]:+.2f} / {tilt[1]:+.2f} | {std[0]:.2f} / {std[1]:.2f} | "
                   f"{e['height']:+.3f} | {e['height_std']:.3f} | {e['noise']:.3f} |", flush=True)
+        calibration.SMOOTH_CORNER_ERROR_PX = default
         if args.floor:
-            rig, report = world_frame_rig(stereo, board, origin_left, origin_right)
             floors.append(floor_tilt_errors(rig, report, board, folder, truth))
             (fx, fy), (bx, by) = floors[-1]
             print(f"{folder.name}: tilt error of the floor's plane {fx:+.2f} / {fy:+.2f} mrad, of the board's "
@@ -123,11 +125,11 @@ def main(argv=None) -> None:
             print(f"smooth error {smooth:g} px, {name}: errors / std RMS {np.sqrt(np.mean(values**2)):.2f} over "
                   f"{len(values)}, past 2 std {np.sum(abs(values) > 2)}, past 3 std {np.sum(abs(values) > 3)}")
     if floors:
-        floor, board = (np.concatenate([f[k] for f in floors]) for k in (0, 1))
+        floor, on_board = (np.concatenate([f[k] for f in floors]) for k in (0, 1))
         rms = {name: float(np.sqrt(np.mean(v**2))) for name, v in
-               (("floor", floor), ("board", board), ("mean", (floor + board) / 2))}
+               (("floor", floor), ("board", on_board), ("mean", (floor + on_board) / 2))}
         print(f"tilt error RMS over {len(floor)} axes (mrad): the floor's plane {rms['floor']:.2f}, the board's "
-              f"{rms['board']:.2f}, their mean {rms['mean']:.2f}; correlation {np.corrcoef(floor, board)[0, 1]:.2f}")
+              f"{rms['board']:.2f}, their mean {rms['mean']:.2f}; correlation {np.corrcoef(floor, on_board)[0, 1]:.2f}")
 
 
 if __name__ == "__main__":

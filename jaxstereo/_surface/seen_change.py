@@ -64,7 +64,8 @@ def change_where_seen(before: DEM, after: DEM, tolerance_m: float, reach_m: floa
     around = np.stack([padded[row + i, col + j] for i in range(3) for j in range(3)])
     some = np.isfinite(around).any(axis=0)
     estimate = change[rows[row, col], cols[row, col]]  # the nearest seen cell's
-    estimate[some] = _within_neighbours((after.z - before.z)[row[some], col[some]], around[:, some])
+    own = after.z[row[some], col[some]] - before.z[row[some], col[some]]
+    estimate[some] = _within_neighbours(own, around[:, some])
     z = after.z.copy()
     z[row, col] = before.z[row, col] + estimate
     return dataclasses.replace(after, z=z), carried
