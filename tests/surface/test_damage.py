@@ -507,6 +507,33 @@ def test_a_slope_rising_toward_minus_x_is_found_and_measured_as_its_mirror_image
         assert x_fit == pytest.approx(x0, abs=1e-9) and rms < 1e-9
 
 
+def test_a_design_line_that_runs_off_the_survey_at_once_does_not_win_on_its_first_centimetres():
+    """A survey that reaches only 6 cm in front of the toe, where a row of toe rocks stands Dn50 high, and an armour
+    whose surface lies 2.5 cm above the design line through the toe (on the POV-Ray flume's rig J, water 7 cm deep,
+    the slope's direction was read the wrong way so, and the central profile's d_e came out 10.7 mm short). Drawn
+    toward -x the line leaves the DEM after its first 7 of 33 heights, and over those it passes within 1-3 cm of
+    the toe rocks, nearer than the armour is to the line drawn up the slope: judged by those heights alone it wins.
+    A height at which a line has left the survey counts against it."""
+    from jaxstereo._surface.slope_direction import slope_direction
+
+    spacing = 0.005
+    x = np.round(np.arange(-0.06, 0.6, spacing), 6)
+    y = np.round(np.arange(-0.2, 0.2, spacing), 6)
+    X, Y = np.meshgrid(x, y)
+    rng = np.random.default_rng(3)
+    z = np.where(X < 0.0, DN50, X / COT + 0.025) + rng.normal(0.0, 0.003, X.shape)
+    dem = DEM(x, y, z, spacing)
+    swl = 2 * DN50
+    assert slope_direction(dem, COT, swl, (0.0, 0.0), DN50) == "+x"
+    mirrored = DEM(-x[::-1], y, z[:, ::-1], spacing)
+    assert slope_direction(mirrored, COT, swl, (0.0, 0.0), DN50) == "-x"
+    # Where the survey runs on in front of the toe (floor at z = 0 beyond the toe rocks), the same holds.
+    x_long = np.round(np.arange(-0.4, 0.6, spacing), 6)
+    X, Y = np.meshgrid(x_long, y)
+    z_long = np.where(X < -0.1, 0.0, np.where(X < 0.0, DN50, X / COT + 0.025))
+    assert slope_direction(DEM(x_long, y, z_long, spacing), COT, swl, (0.0, 0.0), DN50) == "+x"
+
+
 def test_a_cell_only_one_survey_saw_is_not_compared_with_the_other_bridged_across_it():
     """An unchanged rubble slope surveyed twice: the first survey missed the floor cell at the foot of each block's
     seaward face (a crevice it did not see), the second saw it. Compared as they were, the first survey's profile
