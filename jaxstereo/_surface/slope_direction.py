@@ -22,11 +22,11 @@ def slope_direction(before: DEM, cot: float, swl: float, origin, dn50: float) ->
     """The direction ("+x" or "-x") in which the design slope of cotangent `cot` through `origin` (x, z) metres
     rises, from the initial DEM `before`: the one whose line, over the heights from 2 Dn50 below to 2 Dn50 above
     the SWL `swl` (m), lies nearer the DEM. Each direction is scored by the median absolute vertical distance
-    between its line and the DEM over the DEM's rows and those heights, where a height at which the line has left
-    the DEM's x range counts as infinitely far: a line that runs off the survey after a few centimetres (over a
-    toe the survey barely reaches) is not judged by those centimetres alone. Where both lines leave the DEM at
-    most heights, the one that stays on it at more heights wins. "+x" when neither line meets the DEM: the damage
-    then says what is wrong."""
+    between its line and the DEM over the DEM's rows and those heights, where the line has left the DEM's x range
+    or crosses an empty cell counting as infinitely far: a line that runs off the survey after a few centimetres
+    (over a toe the survey barely reaches) is not judged by those centimetres alone. Where both medians are
+    infinite, the line over more surveyed cells wins. "+x" when neither line meets the DEM at a row's worth of
+    cells: the damage then says what is wrong."""
     x0, z0 = (float(v) for v in origin)
     heights = np.linspace(swl - 2 * dn50, swl + 2 * dn50, 33)
     score = {}
@@ -36,15 +36,13 @@ def slope_direction(before: DEM, cot: float, swl: float, origin, dn50: float) ->
         inside = (columns >= 0) & (columns < before.x.size)
         gap = np.full((before.y.size, heights.size), np.inf)
         gap[:, inside] = np.abs(before.z[:, columns[inside]] - heights[inside][None, :])
-        seen = np.isfinite(before.z[:, np.clip(columns, 0, before.x.size - 1)]) | ~inside[None, :]
-        if not np.isfinite(gap[seen]).sum() >= max(3, before.y.size):  # about a height per row at least
-            continue
-        score[name] = (float(np.median(gap[seen])), -int(inside.sum()))
+        gap[np.isnan(gap)] = np.inf  # an empty cell
+        met = int(np.isfinite(gap).sum())
+        if met >= max(3, before.y.size):  # about a height per row at least
+            score[name] = (float(np.median(gap)), -met)
     if not score:
         return "+x"
-    if all(np.isinf(v[0]) for v in score.values()):
-        return min(score, key=lambda name: score[name][1])
-    return min(score, key=lambda name: score[name][0])
+    return min(score, key=score.get)
 
 
 def mirrored_in_x(dem: DEM) -> DEM:

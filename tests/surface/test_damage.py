@@ -513,7 +513,7 @@ def test_a_design_line_that_runs_off_the_survey_at_once_does_not_win_on_its_firs
     the slope's direction was read the wrong way so, and the central profile's d_e came out 10.7 mm short). Drawn
     toward -x the line leaves the DEM after its first 7 of 33 heights, and over those it passes within 1-3 cm of
     the toe rocks, nearer than the armour is to the line drawn up the slope: judged by those heights alone it wins.
-    A height at which a line has left the survey counts against it."""
+    A height at which a line has left the survey, or crosses an empty cell, counts against it."""
     from jaxstereo._surface.slope_direction import slope_direction
 
     spacing = 0.005
@@ -527,6 +527,11 @@ def test_a_design_line_that_runs_off_the_survey_at_once_does_not_win_on_its_firs
     assert slope_direction(dem, COT, swl, (0.0, 0.0), DN50) == "+x"
     mirrored = DEM(-x[::-1], y, z[:, ::-1], spacing)
     assert slope_direction(mirrored, COT, swl, (0.0, 0.0), DN50) == "-x"
+    # The same on a grid that runs on past the survey, its cells there empty (a DEM's box is wider than its data).
+    x_box = np.round(np.arange(-0.4, 0.6, spacing), 6)
+    z_box = np.full((y.size, x_box.size), np.nan)
+    z_box[:, x_box >= -0.06 - 1e-9] = z
+    assert slope_direction(DEM(x_box, y, z_box, spacing), COT, swl, (0.0, 0.0), DN50) == "+x"
     # Where the survey runs on in front of the toe (floor at z = 0 beyond the toe rocks), the same holds.
     x_long = np.round(np.arange(-0.4, 0.6, spacing), 6)
     X, Y = np.meshgrid(x_long, y)
