@@ -112,14 +112,19 @@ def _check_inputs(left_image, right_image, rig: Rig, interface: Interface | None
     for name, image in (("left", left_image), ("right", right_image)):
         if image.shape[1] != w or image.shape[0] != h:
             raise JaxStereoError(f"{name} image is {image.shape[1]}x{image.shape[0]} but the rig's cameras are {w}x{h}")
-    if interface is not None:
-        check_camera_above(rig.left.center, interface, "left camera")
-        check_camera_above(rig.right.center, interface, "right camera")
+    if interface is not None:  # the centres in numpy: JAX's eager operations cost a fresh process 10-30 ms each
+        check_camera_above(_center(rig.left), interface, "left camera")
+        check_camera_above(_center(rig.right), interface, "right camera")
         if float(interface.level) < z_range[0]:
             raise JaxStereoError(
                 f"water level {float(interface.level):.4g} m is below the whole scene (z from {z_range[0]:.4g} m): "
                 "for a dry survey give no water level"
             )
+
+
+def _center(camera: Camera) -> np.ndarray:
+    """The camera's centre (3,) world metres, `Camera.center` computed in numpy."""
+    return -np.asarray(camera.pose.R, np.float64).T @ np.asarray(camera.pose.t, np.float64)
 
 
 def _interface_for(rig: Rig, water_level: float | None) -> Interface | None:
@@ -248,7 +253,7 @@ def _load_in_background(rect, rig: Rig, interface, model: str, with_covariances:
 
     @float64
     def load():
-        dummy = jnp.ones((CHUNK, 2))
+        dummy = np.ones((CHUNK, 2))  # numpy, as the real calls pass: no eager operation to load
         try:
             jax.block_until_ready(_triangulate_chunk_jit(rect, rig.left, rig.right, interface, model, dummy, dummy))
             if with_covariances:
@@ -530,7 +535,7 @@ def _triangulate_matches(rect, rig: Rig, interface, model: str, disparity, offse
         _triangulate_chunk_jit, (rect, rig.left, rig.right, interface, model), rl, rr)
     marked = dropped()
     listed = np.ones(rl.shape[0], bool) if marked is None else ~_at(marked, flat)
-    gap_px = gap * float(rect.K[0, 0]) / np.maximum(distance, 1e-9)
+    gap_px = gap * float(np.asarray(rect.K)[0, 0]) / np.maximum(distance, 1e-9)  # numpy: no eager slice to load
     # (n, 3) reduced column by column: 3x faster
     finite = listed & ok & np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])
     meets = finite & (gap_px <= max_ray_gap_px)

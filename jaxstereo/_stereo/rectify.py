@@ -71,8 +71,8 @@ def rectify_checked(left: Camera, right: Camera, interface: Interface | None, mo
     arrays = cached_tables("rectification", (left, right, itf, mode),
                            lambda: _rectification_arrays(left, right, interface, mode))
     size = (int(arrays["size"][0]), int(arrays["size"][1]))
-    return Rectification(jnp.asarray(arrays["K"]), jnp.asarray(arrays["R"]), jnp.asarray(arrays["centers"]), itf,
-                         mode, size)
+    # device_put, not jnp.asarray: the same arrays, without an eager operation to trace and load in a fresh process
+    return Rectification(*(jax.device_put(arrays[key]) for key in ("K", "R", "centers")), itf, mode, size)
 
 
 def _rectification_arrays(left: Camera, right: Camera, interface: Interface | None, mode: str) -> dict:

@@ -190,9 +190,9 @@ def load_point_covariances(image_size: tuple[int, int], search: tuple[int, int])
     would otherwise do in its first call (a tenth of a second). Thread-safe; the values are not used."""
     shape = (2, *(len(axis) for axis in _table_axes(image_size, search)), TABLE_CHANNELS)
     zeros = np.zeros(INTERPOLATION_CHUNK, np.float32)
-    jax.block_until_ready(_chunk_errors(jnp.asarray(np.zeros(shape, np.float32)),
-                                        jnp.asarray(np.zeros((3, INTERPOLATION_CHUNK), np.float32)),
-                                        jnp.asarray(zeros.astype(np.int32)), jnp.asarray(zeros), jnp.asarray(zeros)))
+    # numpy in, as the real calls pass it (jnp.asarray would trace and load an eager copy per shape)
+    jax.block_until_ready(_chunk_errors(np.zeros(shape, np.float32), np.zeros((3, INTERPOLATION_CHUNK), np.float32),
+                                        zeros.astype(np.int32), zeros, zeros))
 
 
 def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.ndarray, refracted: np.ndarray,
@@ -219,7 +219,7 @@ def point_covariances(table: dict, v: np.ndarray, u: np.ndarray, disparity: np.n
                        (np.asarray(u, f32) - f32(origin[1])) / f32(step[1]),
                        (np.asarray(disparity, f32) - f32(origin[2])) / f32(step[2])])
     per_point = (refracted.astype(np.int32), np.asarray(sigma_d, f32), np.nan_to_num(disagreement).astype(f32))
-    values = jnp.asarray(table["table"].astype(f32))
+    values = jax.device_put(table["table"].astype(f32))  # on the device once; device_put loads no eager copy
     k = len(v)
     out = {"cov": np.empty((k, 6), f32), **{name: np.empty(k, f32) for name in _PER_POINT_ERRORS}}
     for start in range(0, k, INTERPOLATION_CHUNK):  # fixed-size chunks: compiled once, whatever the count
