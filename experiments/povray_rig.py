@@ -9,13 +9,20 @@ independent ray tracer; not a Python dependency, `apt install povray`):
   cameras (tilted up to 40 degrees, turned at random);
 - `origin_{L,R}.jpg`: the board lying on the floor, its top face at z = 0, its inner corner (0, 0) at `origin`;
 - `board_wet_{L,R}.jpg`: the sloping board of the development flume (textured like the floor) half under water;
-- the breakwater scenes of `povray_flume.py` (painted and grey rock, stages I and III, wet and dry).
+- the breakwater scenes of `povray_flume.py` (painted and grey rock, stages I and III, wet and dry);
+- with `--oblique-deg`, a second rig as the development flume's oblique one: two cameras in front of the model,
+  `--oblique-height` m above the floor, their axes tilted that many degrees from the vertical toward the model and
+  both aimed at the sloping board's middle, `--oblique-baseline` m apart across the flume, jittered like the main
+  rig; its own `calib_oblique/` photographs, `origin_oblique_{L,R}.jpg` (the board on the floor where the rig's
+  axes meet it) and `oblique_board_wet_{L,R}.jpg` (flume-score's `oblique` check).
 It writes `breakwater_gt.npz` and a `truth.json` that `flume-score --data DIR` reads
-(`--only calibration,board,breakwater,grey,wetdry,refine-dem,refine-floor,damage,speed`). Nothing here uses
+(`--only calibration,board,breakwater,grey,wetdry,refine-dem,refine-floor,damage,speed`, and `oblique` with
+`--oblique-deg`). Nothing here uses
 jaxstereo's geometry: the cameras are POV-Ray's own pinholes (`povray_flume.camera_pov`).
 
 Run: python experiments/povray_rig.py OUT [--height 2.3] [--baseline 0.25] [--across] [--step 0] [--converge-deg 3]
-     [--focal-px 3000] [--size 1728 1152] [--level 0.15] [--seed 7]
+     [--focal-px 3000] [--size 1728 1152] [--level 0.15] [--seed 7] [--oblique-deg 25 [--oblique-height 1.65]
+     [--oblique-baseline 0.18]]
 """
 
 from __future__ import annotations
@@ -42,6 +49,8 @@ PATTERN = (9, 6)  # inner corners
 MARGIN_PX = 40  # every board corner this far inside both images
 AIM = (0.5, 0.3)  # m, the point of the floor under the rig's middle: the model's middle
 BOARD_PLANE = {"x0": 0.12, "length": 0.65, "drop": 0.28, "width": 0.6}  # the development flume's sloping board
+# The sloping board's middle: where the oblique rig's axes meet (x m along the slope, the flume's middle, on the board)
+BOARD_MIDDLE = np.array([BOARD_PLANE["x0"] + 0.3, 0.3, 0.3 * BOARD_PLANE["drop"] / BOARD_PLANE["length"]])
 
 
 def _turn(axis, angle: float) -> np.ndarray:
@@ -71,6 +80,30 @@ def make_rig(height: float, baseline: float, across: bool, converge_deg: float, 
     return rig
 
 
+def make_oblique_rig(tilt_deg: float, height: float, baseline: float, seed: int, aim=BOARD_MIDDLE,
+                     jitter_deg: float = 0.4) -> dict:
+    """Two cameras in front of the model (toward -x), `height` m above the floor, `baseline` m apart across the flume
+    (the left one at +y), each aimed at `aim` (x, y, z) m, their mid-axis tilted `tilt_deg` degrees from the vertical
+    toward +x, then turned by a normal random rotation of `jitter_deg` degrees per axis (`seed`): the development
+    flume's oblique rig (25 degrees, 1.65 m, 0.18 m) in general. Image x runs toward -y, image y toward -x.
+    **Returns:** {"L": {"R", "t"}, "R": {...}}, world -> camera (OpenCV axes), metres, as lists."""
+    rng = np.random.default_rng(seed + 1000)  # not the main rig's draws
+    tilt = np.radians(tilt_deg)
+    reach = (height - aim[2]) / np.cos(tilt)
+    middle = np.asarray(aim, float) - reach * np.array([np.sin(tilt), 0.0, -np.cos(tilt)])
+    rig = {}
+    for side, sign in (("L", 1.0), ("R", -1.0)):
+        centre = middle + [0.0, sign * baseline / 2, 0.0]
+        forward = (aim - centre) / np.linalg.norm(aim - centre)
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        axes = np.stack([right, np.cross(forward, right), forward])  # rows: the camera's x, y, z in the world
+        a, b, c = rng.normal(0, np.radians(jitter_deg), 3)
+        R = _turn([1, 0, 0], a) @ _turn([0, 1, 0], b) @ _turn([0, 0, 1], c) @ axes
+        rig[side] = {"R": R.tolist(), "t": (-R @ centre).tolist()}
+    return rig
+
+
 def project(K: np.ndarray, camera: dict, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pinhole pixels (n, 2) of world points `X` (n, 3) and their depths (n,) in `camera` ({"R", "t"})."""
     x = X @ np.asarray(camera["R"]).T + np.asarray(camera["t"])
@@ -87,22 +120,28 @@ def board_corners() -> np.ndarray:
 
 
 def board_poses(K: np.ndarray, rig: dict, count: int, seed: int, max_tilt_deg: float = 40.0,
-                size: tuple[int, int] = SIZE) -> list[tuple]:
+                size: tuple[int, int] = SIZE, follow_axis: bool = False) -> list[tuple]:
     """`count` poses (R, c) of the board in the air (board -> world: X = R p + c) whose every corner both cameras
     see `MARGIN_PX` inside their images of `size` (w, h) pixels, facing them: centres spread over the cameras'
-    common view at 0.3-1.3 m above the floor, the board tilted up to `max_tilt_deg` from level toward a random
-    azimuth, turned at random."""
+    common view at 0.3-1.3 m above the floor (about the point under the cameras' middle, or with `follow_axis` about
+    where their mean axis passes that height: an oblique rig), the board tilted up to `max_tilt_deg` from level
+    toward a random azimuth, turned at random."""
     rng = np.random.default_rng(seed)
     local = board_corners()
     middle = local[:-4].mean(0)
     centres = [-np.asarray(rig[s]["R"]).T @ np.asarray(rig[s]["t"]) for s in "LR"]
+    axis = np.mean([np.asarray(rig[s]["R"])[2] for s in "LR"], 0)
     poses = []
     for _ in range(20000):
         if len(poses) == count:
             break
         z = rng.uniform(0.3, 1.3)
         reach = 0.45 * (centres[0][2] - z)
-        c = np.array([*(np.mean(centres, 0)[:2] + rng.uniform(-reach, reach, 2)), z])
+        below = np.mean(centres, 0)[:2]
+        if follow_axis:
+            below = below + axis[:2] * (np.mean(centres, 0)[2] - z) / -axis[2]
+            reach = 0.45 * (centres[0][2] - z) / -axis[2]
+        c = np.array([*(below + rng.uniform(-reach, reach, 2)), z])
         turned = _turn([0, 0, 1], rng.uniform(0, 2 * np.pi))
         azimuth = rng.uniform(0, 2 * np.pi)
         R = _turn([np.cos(azimuth), np.sin(azimuth), 0], np.radians(rng.uniform(0, max_tilt_deg))) @ turned
@@ -169,6 +208,11 @@ def main(argv=None) -> None:
     parser.add_argument("--boards", type=int, default=14, help="calibration photographs")
     parser.add_argument("--scenes", default="board_wet,bw_I_wet,bw_I_dry,bw_III_wet,grey_I_wet,grey_I_dry",
                         help="comma list of the scenes to render")
+    parser.add_argument("--oblique-deg", type=float, default=0.0,
+                        help="also an oblique rig, its axes this many degrees off the vertical (0: none)")
+    parser.add_argument("--oblique-height", type=float, default=1.65,
+                        help="the oblique rig's height above the floor, m")
+    parser.add_argument("--oblique-baseline", type=float, default=0.18, help="the oblique rig's baseline (across), m")
     args = parser.parse_args(argv)
     if shutil.which("povray") is None:
         raise SystemExit("povray_rig: no `povray` on the PATH (POV-Ray 3.7: apt install povray)")
@@ -185,10 +229,28 @@ def main(argv=None) -> None:
         shots[f"calib/calib_{k:02d}"] = partial(_scene, body=[board_pov(R, c)], background=0.25)
     origin = np.array([*AIM, 0.0]) - [4 * SQUARE, 2.5 * SQUARE, 0]  # the board's middle under the rig
     shots["origin"] = partial(_scene, body=[pf.floor_pov(-0.004), board_pov(np.eye(3), origin)])
+    scenes = {}
+    rigs, origins = {"main": rig}, {"origin": origin.tolist()}
+    if args.oblique_deg:
+        oblique = make_oblique_rig(args.oblique_deg, args.oblique_height, args.oblique_baseline, args.seed)
+        rigs["oblique"] = oblique
+        cams.update({f"oblique {s}": pf.camera_pov(K, np.array(oblique[s]["R"]), np.array(oblique[s]["t"]), size)
+                     for s in "LR"})
+        (args.out / "calib_oblique").mkdir(parents=True, exist_ok=True)
+        for k, (R, c) in enumerate(board_poses(K, oblique, args.boards, args.seed, size=size, follow_axis=True)):
+            shots[f"calib_oblique/calib_{k:02d}"] = partial(_scene, body=[board_pov(R, c)], background=0.25)
+        tilt = np.radians(args.oblique_deg)  # the board's middle where the rig's mean axis meets the floor
+        floor_hit = BOARD_MIDDLE[0] + BOARD_MIDDLE[2] * np.tan(tilt)
+        origins["origin_oblique"] = [floor_hit - 4 * SQUARE, BOARD_MIDDLE[1] - 2.5 * SQUARE, 0.0]
+        shots["origin_oblique"] = partial(_scene, body=[pf.floor_pov(-0.004),
+                                                        board_pov(np.eye(3), np.array(origins["origin_oblique"]))])
+        scenes["oblique_board_wet"] = {"rig": "oblique", "water_level": args.level, "kind": "plane",
+                                       "plane": BOARD_PLANE}
+        body = [pf.floor_pov(), sloping_board_pov(BOARD_PLANE), pf.water_pov(args.level)]
+        shots["oblique_board_wet"] = partial(_scene, body=body, background=0.6)
     stones = pf.rocks(args.seed)
     hole_xy = (pf.TOE + pf.SLOPE * (args.level - 0.02), 0.3)
     lost = pf.hole(stones, hole_xy)
-    scenes = {}
     for name in filter(None, args.scenes.split(",")):
         if name == "board_wet":
             scenes[name] = {"rig": "main", "water_level": args.level, "kind": "plane", "plane": BOARD_PLANE}
@@ -209,15 +271,16 @@ def main(argv=None) -> None:
         with atomic_path(args.out / "breakwater_gt.npz") as tmp:
             np.savez_compressed(tmp, x=x, y=y, **surfaces)
     for name, shot in shots.items():
+        oblique = name.startswith("calib_oblique/") or name in ("origin_oblique", "oblique_board_wet")
         for side in "LR":
             out = args.out / f"{name}_{side}.jpg"
             if out.exists():
                 continue
             t0 = time.perf_counter()
-            pf.render(shot(cams[side]), out, size)
+            pf.render(shot(cams[f"oblique {side}" if oblique else side]), out, size)
             print(f"{out.relative_to(args.out)}: {time.perf_counter() - t0:.0f} s", flush=True)
     truth = {"K": K.tolist(), "size": list(size), "n_water": 1.333, "square": SQUARE, "pattern": list(PATTERN),
-             "origin": origin.tolist(), "images": "jpg (quality 95)", "rigs": {"main": rig}, "scenes": scenes,
+             **origins, "images": "jpg (quality 95)", "rigs": rigs, "scenes": scenes,
              "breakwater": {"dn50": pf.DN50, "slope": pf.SLOPE, "toe": pf.TOE, "height": pf.HEIGHT,
                             "hole_centre_xy": list(hole_xy), "width": 0.6},
              "made_by": "experiments/povray_rig.py " + " ".join(argv if argv is not None else sys.argv[1:])}

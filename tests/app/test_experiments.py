@@ -303,6 +303,40 @@ def test_povray_rig_makes_the_rig_asked_and_boards_both_cameras_see_whole():
     assert np.allclose(centres[1] - centres[0], [0.2, 0.0, 0.08], atol=1e-12)  # the right camera 8 cm higher
 
 
+def test_povray_rig_oblique_rig_aims_at_the_board_and_sees_its_boards_whole():
+    """`povray_rig.make_oblique_rig`: the cameras stand at the height and across-flume baseline asked, in front of the
+    model, their axes pass within the jitter's reach of the sloping board's middle and tilt by the angle asked from
+    the vertical; the right camera sees positive disparities (image x toward -y); `board_poses(follow_axis=True)`
+    finds poses both cameras see whole, and the origin board where the rig's axis meets the floor is in both views."""
+    import numpy as np
+
+    from experiments import povray_rig as pr
+
+    K = np.array([[2600.0, 0, 863.5], [0, 2600.0, 575.5], [0, 0, 1]])
+    for tilt in (25.0, 40.0):
+        rig = pr.make_oblique_rig(tilt, 1.65, 0.18, seed=5)
+        R = {s: np.array(rig[s]["R"]) for s in "LR"}
+        centre = {s: -R[s].T @ np.array(rig[s]["t"]) for s in "LR"}
+        assert np.allclose(R["L"] @ R["L"].T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R["L"]), 1.0)
+        assert np.allclose(centre["L"] - centre["R"], [0.0, 0.18, 0.0], atol=1e-12)
+        assert np.allclose([centre["L"][2], centre["R"][2]], 1.65, atol=1e-12)
+        assert centre["L"][0] < pr.BOARD_PLANE["x0"]  # in front of the model
+        for s in "LR":
+            to_aim = pr.BOARD_MIDDLE - centre[s]
+            miss = np.linalg.norm(np.cross(R[s][2], to_aim))  # the axis's distance from the board's middle
+            assert miss < np.linalg.norm(to_aim) * np.radians(1.5), miss  # 0.4 deg jitter per axis
+            assert R[s][0] @ [0, -1, 0] > 0.99  # image x toward -y: the right camera (at -y) sees d > 0
+        off_vertical = np.degrees(np.arccos(-np.mean([R["L"][2], R["R"][2]], 0)[2]))
+        assert abs(off_vertical - tilt) < 1.5, off_vertical
+        poses = pr.board_poses(K, rig, 6, seed=3, follow_axis=True)
+        assert len(poses) == 6
+        floor_hit = pr.BOARD_MIDDLE[0] + pr.BOARD_MIDDLE[2] * np.tan(np.radians(tilt))
+        corners = pr.board_corners()[:-4] + [floor_hit - 4 * pr.SQUARE, pr.BOARD_MIDDLE[1] - 2.5 * pr.SQUARE, 0]
+        for s in "LR":
+            uv, depth = pr.project(K, rig[s], corners)
+            assert (depth > 0).all() and (uv > 0).all() and (uv < np.array(pr.SIZE) - 1).all()
+
+
 def test_frame_tilt_reads_a_known_tilt_and_height_of_the_world_frame():
     """`frame_tilt.frame_errors`: a calibrated frame turned from the truth's by 0.5 mrad about its x axis and -0.3 about
     y, and shifted 0.2 mm along z, reads the turn back (with its sign turned: the rotation from our up to the truth's)
