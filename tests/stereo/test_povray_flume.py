@@ -300,12 +300,15 @@ def test_undamaged_model_dry_against_wet_reports_S_within_its_error_bars(flume):
     # trials, 90 %
     assert np.mean(z <= 2) >= 0.9
     assert z.max() <= 3  # 1.74 measured: S 0.050 +- 0.029 at y = 0.210 m; the largest S, 0.072, has sigma 0.048
-    # Every true d_e and L_e is 0 too. Measured: the largest d_e 18.9 mm (E2D 0.53), and each profile's 95 %
+    # Every true d_e and L_e is 0 too. Measured: the largest d_e 18.9 mm (E2D 0.53; 25.9 mm since round 66, where a
+    # carried cell keeps its own change within the whole range of its neighbours': at y = 0.10 m two cells read 2 mm
+    # lower and the foot sinks into a crevice, a zone 175 mm long, S 0.15, its 95 % interval [0, 37] mm; rigs B and F
+    # of round 62 read 24.5 and 32.2 mm with the rule before), and each profile's 95 %
     # intervals of d_e and L_e hold 0 at 115 of 115 profiles, as do the stretch's largest d_e's and L_e's (215 mm,
     # [0, 281]). While the two surveys' edges of one overhanging face were two edges, the slivers between them read
     # 110 mm (E2D 3.1), and 89 of 115 d_e intervals held 0; while a zone's length and depth were bounded on their
     # own draws alone, 112 of 115, and no L_e interval held 0 ([131, 281] mm over the stretch).
-    assert report["d_e_max_m"] <= 0.025
+    assert report["d_e_max_m"] <= 0.03
     held = [p["interval_95"]["d_e_m"][0] == 0.0 and p["interval_95"]["L_e_m"][0] == 0.0
             for p in report["profiles"] if "interval_95" in p]
     assert len(held) >= 60 and np.mean(held) >= 0.95
@@ -352,7 +355,8 @@ def test_profiles_through_the_hole_have_error_bars_that_cover_the_truth(flume):
         assert float(csv_rows[f"{p['y_m']:.4f}"]["d_e_sigma_m"]) == pytest.approx(sigma["d_e_m"], rel=5e-3)  # 3 digits
         low, high = p["interval_95"]["L_e_m"]
         assert float(csv_rows[f"{p['y_m']:.4f}"]["L_e_low_m"]) == pytest.approx(low, rel=5e-3)
-        assert low <= p["L_e_m"] - 2 * sigma["L_e_m"] + 1e-12 and high >= p["L_e_m"] + 2 * sigma["L_e_m"] - 1e-12
+        # at least the 2 sigma band, less what lies below zero (a zone's length is not negative)
+        assert low <= max(p["L_e_m"] - 2 * sigma["L_e_m"], 0.0) + 1e-12 and high >= p["L_e_m"] + 2 * sigma["L_e_m"] - 1e-12
         assert low <= reference.L_e <= high, (y, p["L_e_m"], reference.L_e, low, high)  # L_e reads long, by 1-32 mm
         checked.append(((p["d_e_m"] - reference.d_e) / sigma["d_e_m"], (p["A_e_m2"] - reference.A_e) / sigma["A_e_m2"]))
     z = np.abs(np.array(checked))
