@@ -58,6 +58,12 @@ def _turn(axis, angle: float) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(axis, float) / np.linalg.norm(axis) * angle)[0]
 
 
+def _jitter(rng: np.random.Generator, jitter_deg: float) -> np.ndarray:
+    """A camera's small random turn (3, 3): normal angles of `jitter_deg` degrees about x, y and z, drawn from `rng`."""
+    tilt, turn, roll = rng.normal(0, np.radians(jitter_deg), 3)
+    return _turn([1, 0, 0], tilt) @ _turn([0, 1, 0], turn) @ _turn([0, 0, 1], roll)
+
+
 def make_rig(height: float, baseline: float, across: bool, converge_deg: float, seed: int,
              aim=AIM, jitter_deg: float = 0.4, step: float = 0.0) -> dict:
     """Two nadir cameras `height` m above the floor, `baseline` m apart (horizontally) along the flume (x) or
@@ -73,9 +79,7 @@ def make_rig(height: float, baseline: float, across: bool, converge_deg: float, 
     for side, sign in (("L", -1.0), ("R", 1.0)):
         centre = np.array([aim[0], aim[1], height + (step if side == "R" else 0.0)]) + sign * baseline / 2 * base
         toe_in = _turn(nadir[1], -sign * np.radians(converge_deg) / 2)  # about the camera's y axis, toward the other
-        tilt, turn, roll = rng.normal(0, np.radians(jitter_deg), 3)
-        jitter = _turn([1, 0, 0], tilt) @ _turn([0, 1, 0], turn) @ _turn([0, 0, 1], roll)
-        R = jitter @ nadir @ toe_in.T
+        R = _jitter(rng, jitter_deg) @ nadir @ toe_in.T
         rig[side] = {"R": R.tolist(), "t": (-R @ centre).tolist()}
     return rig
 
@@ -98,8 +102,7 @@ def make_oblique_rig(tilt_deg: float, height: float, baseline: float, seed: int,
         right = np.cross(forward, [0.0, 0.0, 1.0])
         right /= np.linalg.norm(right)
         axes = np.stack([right, np.cross(forward, right), forward])  # rows: the camera's x, y, z in the world
-        a, b, c = rng.normal(0, np.radians(jitter_deg), 3)
-        R = _turn([1, 0, 0], a) @ _turn([0, 1, 0], b) @ _turn([0, 0, 1], c) @ axes
+        R = _jitter(rng, jitter_deg) @ axes
         rig[side] = {"R": R.tolist(), "t": (-R @ centre).tolist()}
     return rig
 
@@ -130,18 +133,17 @@ def board_poses(K: np.ndarray, rig: dict, count: int, seed: int, max_tilt_deg: f
     local = board_corners()
     middle = local[:-4].mean(0)
     centres = [-np.asarray(rig[s]["R"]).T @ np.asarray(rig[s]["t"]) for s in "LR"]
+    mid = np.mean(centres, 0)
     axis = np.mean([np.asarray(rig[s]["R"])[2] for s in "LR"], 0)
+    # per metre below the cameras: how far the view's middle moves, and the spread's growth
+    drift, widen = (axis[:2] / -axis[2], 1.0 / -axis[2]) if follow_axis else (np.zeros(2), 1.0)
     poses = []
     for _ in range(20000):
         if len(poses) == count:
             break
         z = rng.uniform(0.3, 1.3)
-        reach = 0.45 * (centres[0][2] - z)
-        below = np.mean(centres, 0)[:2]
-        if follow_axis:
-            below = below + axis[:2] * (np.mean(centres, 0)[2] - z) / -axis[2]
-            reach = 0.45 * (centres[0][2] - z) / -axis[2]
-        c = np.array([*(below + rng.uniform(-reach, reach, 2)), z])
+        reach = 0.45 * (centres[0][2] - z) * widen
+        c = np.array([*(mid[:2] + drift * (mid[2] - z) + rng.uniform(-reach, reach, 2)), z])
         turned = _turn([0, 0, 1], rng.uniform(0, 2 * np.pi))
         azimuth = rng.uniform(0, 2 * np.pi)
         R = _turn([np.cos(azimuth), np.sin(azimuth), 0], np.radians(rng.uniform(0, max_tilt_deg))) @ turned
@@ -231,6 +233,7 @@ def main(argv=None) -> None:
     shots["origin"] = partial(_scene, body=[pf.floor_pov(-0.004), board_pov(np.eye(3), origin)])
     scenes = {}
     rigs, origins = {"main": rig}, {"origin": origin.tolist()}
+    main_shots = set(shots)  # the shots through the main rig; the oblique rig's are added next
     if args.oblique_deg:
         oblique = make_oblique_rig(args.oblique_deg, args.oblique_height, args.oblique_baseline, args.seed)
         rigs["oblique"] = oblique
@@ -248,6 +251,7 @@ def main(argv=None) -> None:
                                        "plane": BOARD_PLANE}
         body = [pf.floor_pov(), sloping_board_pov(BOARD_PLANE), pf.water_pov(args.level)]
         shots["oblique_board_wet"] = partial(_scene, body=body, background=0.6)
+    oblique_shots = set(shots) - main_shots
     stones = pf.rocks(args.seed)
     hole_xy = (pf.TOE + pf.SLOPE * (args.level - 0.02), 0.3)
     lost = pf.hole(stones, hole_xy)
@@ -271,7 +275,7 @@ def main(argv=None) -> None:
         with atomic_path(args.out / "breakwater_gt.npz") as tmp:
             np.savez_compressed(tmp, x=x, y=y, **surfaces)
     for name, shot in shots.items():
-        oblique = name.startswith("calib_oblique/") or name in ("origin_oblique", "oblique_board_wet")
+        oblique = name in oblique_shots
         for side in "LR":
             out = args.out / f"{name}_{side}.jpg"
             if out.exists():

@@ -28,7 +28,6 @@ import numpy as np
 from scipy import ndimage
 
 from .grid import DEM
-from .nan_median import nan_median
 
 SEEN_TOLERANCE_M = 0.0  # a cell is seen wholly when no part of it went unseen in either survey
 
@@ -72,8 +71,8 @@ def change_where_seen(before: DEM, after: DEM, tolerance_m: float, reach_m: floa
 
 def _within_neighbours(own: np.ndarray, around: np.ndarray) -> np.ndarray:
     """Each carried cell's change (m): its own, `own` (k,), where that lies within the changes of its wholly seen
-    neighbours, `around` (9, k) with NaN where not seen, else the nearest end of their range; their median where
-    the cell has no change of its own.
+    neighbours, `around` (9, k) with NaN where not seen, else the nearest end of their range. A carried cell holds a
+    height in both DEMs, so `own` is finite; every column of `around` holds at least one seen neighbour.
 
     The change is smooth, so a cell's true change lies among its neighbours': the range says what a cell seen only
     in part may read, and its own reading is the best guess inside it. The median of the neighbours instead flattens
@@ -89,7 +88,7 @@ def _within_neighbours(own: np.ndarray, around: np.ndarray) -> np.ndarray:
     seen = np.isfinite(around)
     low = np.min(np.where(seen, around, np.inf), axis=0)
     high = np.max(np.where(seen, around, -np.inf), axis=0)
-    return np.where(np.isfinite(own), np.clip(own, low, high), nan_median(around, axis=0))
+    return np.clip(own, low, high)
 
 
 def on_common_cells(before: DEM, after: DEM) -> tuple[DEM, DEM]:
