@@ -180,31 +180,63 @@ def _with_crossings(at: np.ndarray, runs) -> np.ndarray:
 
 
 EDGE_JUMP_M = 1e-9  # an envelope whose limits from the two sides differ by more has an edge there
+# A piece of an envelope that falls more than this many times as far as it advances along the slope is a face seen
+# edge-on (within 6 degrees of the slope's normal): an edge too, as a jump is.
+EDGE_STEEPNESS = 10.0
+
+
+def _envelope_edges(X: np.ndarray, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where an envelope (its `left` and `right` limits (n,) at the abscissae `X` (n,)) falls by a face's height
+    within next to no distance along the slope: `(first, last)`, index arrays into `X` of each edge's ends. A jump
+    (the edge of a face that overhangs the slope) is one abscissa, first == last; a run of pieces each falling
+    `EDGE_STEEPNESS` times as far as it advances (a face nearly normal to the slope, which one survey may see
+    overhang and the other not) spans them."""
+    jumps = np.flatnonzero(np.nan_to_num(right - left, nan=0.0) < -EDGE_JUMP_M)
+    fall = np.nan_to_num(right[:-1] - left[1:], nan=0.0)
+    steep = (fall > EDGE_JUMP_M) & (np.diff(X) * EDGE_STEEPNESS < fall)
+    starts = np.flatnonzero(steep & ~np.concatenate([[False], steep[:-1]]))
+    ends = np.flatnonzero(steep & ~np.concatenate([steep[1:], [False]])) + 1
+    first, last = np.concatenate([jumps, starts]), np.concatenate([jumps, ends])
+    order = np.argsort(first, kind="stable")
+    return first[order], last[order]
 
 
 def _paired_edges(X: np.ndarray, initial: tuple[np.ndarray, np.ndarray], final: tuple[np.ndarray, np.ndarray],
                   tolerance: float) -> list[tuple[int, int]]:
-    """Index pairs `(k1, k2)`, k1 < k2, into the abscissae `X` (n,) of an edge of the final envelope and the
-    nearest edge of the initial one within `tolerance` (m along the slope): one face's edge, placed apart by the
-    two surveys. `initial` and `final` are the envelopes' (left, right) limits at `X`. Each edge is paired once,
-    the closest pairs first; pairs whose spans overlap a closer pair's are left out."""
-    edges = [np.flatnonzero(np.nan_to_num(right - left, nan=0.0) < -EDGE_JUMP_M) for left, right in (initial, final)]
-    ei, ef = edges
-    if ei.size == 0 or ef.size == 0 or not tolerance > 0:
+    """Index spans `(k1, k2)`, k1 < k2, into the abscissae `X` (n,), each over edges of both envelopes
+    (`_envelope_edges`) that lie within `tolerance` (m along the slope) of each other: one face's edge, placed apart
+    by the two surveys. `initial` and `final` are the envelopes' (left, right) limits at `X`. The edges of both,
+    in order along the slope, are gathered into groups no wider than `tolerance` from the first edge's start to
+    the last one's end (a group of one envelope's edges that the next edge does not fit starts again at its last
+    edge where that one fits); a group holding edges of both envelopes is one span.
+
+    Until round 67 an edge was a jump alone, and each final edge was paired with the nearest initial one, a pair
+    overlapping a closer one left out. On the POV-Ray development flume's undamaged model (dry survey against wet)
+    slivers were left, each between a face's edge in one survey and the same face in the other: where the face
+    stepped down twice within a sample (two edges in each envelope, the pairs nested), a profile's d_e of 25.9 mm
+    over 0.2 mm; where the face overhung the slope in one survey and stood 2 degrees short of its normal in the
+    other (no jump there), 17.1 mm over 0.7 mm."""
+    edges = [_envelope_edges(X, left, right) for left, right in (initial, final)]
+    if any(first.size == 0 for first, _ in edges) or not tolerance > 0:
         return []
-    after = np.clip(np.searchsorted(X[ei], X[ef]), 1, ei.size - 1) if ei.size > 1 else np.zeros(ef.size, int)
-    candidates = np.stack([after - 1, after], axis=1) if ei.size > 1 else after[:, None]
-    nearest = ei[candidates[np.arange(ef.size), np.abs(X[ei[candidates]] - X[ef, None]).argmin(axis=1)]]
-    gap = np.abs(X[nearest] - X[ef])
-    close = np.flatnonzero(gap <= tolerance)
-    pairs, taken = [], np.zeros(X.size, bool)
-    for k in close[np.argsort(gap[close], kind="stable")]:
-        k1, k2 = sorted((int(ef[k]), int(nearest[k])))
-        if k1 == k2 or taken[k1 : k2 + 1].any():
-            continue
-        taken[k1 : k2 + 1] = True
-        pairs.append((k1, k2))
-    return pairs
+    first = np.concatenate([edges[0][0], edges[1][0]])
+    last = np.concatenate([edges[0][1], edges[1][1]])
+    which = np.concatenate([np.zeros(edges[0][0].size, int), np.ones(edges[1][0].size, int)])
+    groups: list[list] = []  # [first, last, the envelopes whose edges it holds]
+    previous = None
+    for k in np.argsort(first, kind="stable"):
+        edge = (int(first[k]), int(last[k]), int(which[k]))
+        group = groups[-1] if groups else None
+        if group is not None and X[max(edge[1], group[1])] - X[group[0]] <= tolerance:
+            group[1], group[2] = max(group[1], edge[1]), group[2] | {edge[2]}
+        elif (group is not None and len(group[2]) == 1 and previous is not None
+              and X[max(edge[1], previous[1])] - X[previous[0]] <= tolerance):
+            # one envelope's edges so far: the group starts again at the last of them, the one nearest this edge
+            groups[-1] = [previous[0], max(previous[1], edge[1]), {previous[2], edge[2]}]
+        else:
+            groups.append([edge[0], edge[1], {edge[2]}])
+        previous = edge
+    return [(start, end) for start, end, envelopes in groups if len(envelopes) == 2 and end > start]
 
 
 def _bridged(X: np.ndarray, D: np.ndarray, pairs: list[tuple[int, int]]) -> np.ndarray:

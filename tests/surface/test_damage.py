@@ -422,6 +422,50 @@ def test_a_face_edge_moved_further_than_a_sample_is_measured_whole():
         assert dmg.d_e == pytest.approx(0.04 * cos_slope, rel=1e-9)
 
 
+def test_a_face_short_of_the_slopes_normal_in_one_survey_and_overhanging_in_the_other_leaves_no_sliver():
+    # A rock on a 1:2 slope whose landward face falls in two steps, each within a few degrees of the slope's normal
+    # (it advances 0.13 and 0.45 mm along the slope while falling 9-10 mm). The second survey reads the rock
+    # `delta` lower, which tips the first step past the normal: its envelope jumps there and the first survey's
+    # does not. Until round 67 only jumps were edges, and the sliver between the two surveys' faces read as deep
+    # as the step (7.5-15 mm); the change is delta normal to the slope, a few times that on the faces' ends.
+    origin = (0.0, 0.0)
+    x = np.round(np.arange(0.0, 0.3, 0.005), 6)
+    initial = x / COT
+    initial[30:37] += [0.020, 0.024, 0.0245, 0.0195, 0.0073, 0.0045, -0.0040]
+    cos_slope = COT / np.hypot(COT, 1.0)
+    for delta in (0.0005, 0.001, 0.002, 0.003):
+        final = initial.copy()
+        final[30:37] -= delta
+        unpaired = profile_damage((x, initial), (x, final), DN50, COT, origin=origin, edge_tolerance_m=0.0)
+        assert unpaired.d_e > 0.011  # the sliver
+        paired = profile_damage((x, initial), (x, final), DN50, COT, origin=origin)
+        assert delta * cos_slope < paired.d_e < 3.5 * delta * cos_slope
+
+
+def test_a_face_stepping_down_twice_within_a_sample_in_both_surveys_leaves_no_sliver():
+    # A rock's landward face folds back along the slope twice (two jumps in each envelope, their tops 0.1 mm apart
+    # along it). The second survey reads the upper step `upper` lower and the lower step `lower` lower, which puts
+    # its two edges 0.45 * (upper - lower) - 0.1 mm apart the other way round: each of its edges lies nearest the
+    # same edge of the first survey. Until round 67 the second pair, overlapping the first, was left out, and the
+    # first survey's other edge bounded a sliver as deep as the step (22.6-23.8 mm); the change lies between the
+    # cells' own changes normal to the slope.
+    origin = (0.0, 0.0)
+    x = np.round(np.arange(0.0, 0.3, 0.005), 6)
+    initial = x / COT
+    initial[30:38] += [0.020, 0.024, 0.0245, 0.00685, -0.00073, -0.01726, -0.0100, -0.005]
+    X, _ = to_slope_frame(x, initial, COT, origin)
+    assert np.allclose(np.diff(X[32:37]), [-0.0023, 0.0022, -0.0018, 0.00884], atol=5e-5)  # fold, advance, fold
+    cos_slope = COT / np.hypot(COT, 1.0)
+    for upper, lower in ((0.0018, 0.001), (0.0015, 0.0005), (0.001, 0.0), (0.002, 0.0015)):
+        final = initial.copy()
+        final[30:34] -= upper
+        final[34:38] -= lower
+        unpaired = profile_damage((x, initial), (x, final), DN50, COT, origin=origin, edge_tolerance_m=0.0)
+        assert unpaired.d_e > 0.035  # the sliver
+        paired = profile_damage((x, initial), (x, final), DN50, COT, origin=origin)
+        assert lower * cos_slope <= paired.d_e <= upper * cos_slope
+
+
 def test_overhanging_faces_sampled_apart_add_no_false_erosion():
     # Rubble seen twice: the same blocks (faces 14 to 50 mm high), each with a vertical landward face (which
     # folds the profile back along the slope), in two surveys whose 5 mm cells fall 2 mm apart. The outer
