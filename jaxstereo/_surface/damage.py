@@ -281,18 +281,19 @@ def profile_damage(initial: tuple[ArrayLike, ArrayLike], final: tuple[ArrayLike,
     - `active_zone`: `(start, end)` abscissae along the slope (metres, see `slope_abscissa`): the erosion and
       accretion zones counted are those that reach into it (the zone around the still water level), each
       whole; None: every zone where the profiles overlap.
-    - `edge_tolerance_m`: an edge of the final envelope (where a face that overhangs the slope ends and the
-      envelope jumps) within this distance along the slope of one of the initial envelope is one face's edge,
-      placed apart by the two surveys: the difference is drawn straight across the two. None: the profiles'
-      sampling step along the slope (the larger of their median vertex spacings), below which the samples
-      cannot tell two edges from one; 0: none drawn across.
+    - `edge_tolerance_m`: edges of the final and the initial envelope (where a face that overhangs the slope
+      ends and the envelope jumps, or where it falls nearly normal to the slope, see `_envelope_edges`) within
+      this distance along the slope of each other are one face's edge, placed apart by the two surveys: the
+      difference is drawn straight across them (`_paired_edges`). None: the profiles' sampling step along the
+      slope (the larger of their median vertex spacings), below which the samples cannot tell two edges from
+      one; 0: none drawn across.
 
     Two surveys of one rock place the edge of its overhanging face a little apart (on a 5 mm DEM a cell's
     height differing by 1 mm moves it 0.45 mm along a 1:2 slope). Between the two edges one envelope is on the
     face's top and the other below it: the difference there reads as deep as the face is high, over a sliver
     of that width. On the POV-Ray flume's undamaged model (dry against wet survey, 5 mm profiles) such
     slivers, all narrower than 2.5 mm, gave profiles `d_e` of up to 110 mm (E2D 3.1); drawn across, 19 mm,
-    with the stage III hole's central profile unchanged.
+    with the stage III hole's central profile unchanged (8.3 mm since round 67's edges).
 
     A zone that reaches into the active zone is measured whole, beyond the active zone's ends too: a hole is
     one, and cutting it where the zone ends would count a part of it that depends on the water level. On the
