@@ -190,15 +190,13 @@ def _envelope_edges(X: np.ndarray, left: np.ndarray, right: np.ndarray) -> tuple
     within next to no distance along the slope: `(first, last)`, index arrays into `X` of each edge's ends. A jump
     (the edge of a face that overhangs the slope) is one abscissa, first == last; a run of pieces each falling
     `EDGE_STEEPNESS` times as far as it advances (a face nearly normal to the slope, which one survey may see
-    overhang and the other not) spans them."""
+    overhang and the other not) spans them. The jumps come first, then the runs (`_paired_edges` orders them)."""
     jumps = np.flatnonzero(np.nan_to_num(right - left, nan=0.0) < -EDGE_JUMP_M)
     fall = np.nan_to_num(right[:-1] - left[1:], nan=0.0)
     steep = (fall > EDGE_JUMP_M) & (np.diff(X) * EDGE_STEEPNESS < fall)
     starts = np.flatnonzero(steep & ~np.concatenate([[False], steep[:-1]]))
     ends = np.flatnonzero(steep & ~np.concatenate([steep[1:], [False]])) + 1
-    first, last = np.concatenate([jumps, starts]), np.concatenate([jumps, ends])
-    order = np.argsort(first, kind="stable")
-    return first[order], last[order]
+    return np.concatenate([jumps, starts]), np.concatenate([jumps, ends])
 
 
 def _paired_edges(X: np.ndarray, initial: tuple[np.ndarray, np.ndarray], final: tuple[np.ndarray, np.ndarray],

@@ -7,17 +7,18 @@ disagree there by up to the rock's height, and each such cell reads as erosion o
 happened: on the POV-Ray flume's undamaged model, dry survey against wet, profiles read S up to 0.66 (grey
 rock: 1.06) from crevices between rocks that neither survey saw well.
 
-The change itself is smoother than the surfaces: rocks that did not move leave no change at all, and a hole's
-change is its depth, which varies over a stone's size rather than over a cell. So the damage compares the surveys
-where both saw the surface wholly, and each cell that one of them saw only in part or filled from its neighbours or
+The change itself is smoother than the surfaces: rocks that did not move leave no change at all, and a hole's change
+is its depth, which varies over a stone's size rather than over a cell. So the damage compares the surveys where
+both saw the surface wholly, and each cell that one of them saw only in part or filled from its neighbours or
 straddling a step (its `sigma_coverage` above the tolerance, by default any) takes its change from the cells around
 it that both saw wholly: its own change kept within the range of its 3 x 3 neighbours' (see `_within_neighbours`;
 the neighbours' median until round 64, their range less those beyond 3 MADs until round 66), else the nearest such
 cell's within a stone's size (Dn50). The after-surface there is the before-surface plus that change. On the POV-Ray
-development flume (about 30 % of the cells carried) the undamaged model's largest S is 0.15 (grey rock: 0.08; 0.12
-and 0.08 with the MADs' rule), and the stage III hole's central A_e reads +0.5 % from the truth (+6.8 % comparing
-every cell). Where the change is not smooth it carries wrongly: a floor cell that one survey saw wholly takes the
-change across a removed rock's edge that the other saw in part (the README lists the rules tried instead).
+development flume (about 30 % of the cells carried) the undamaged model's largest S is 0.15 (0.14 since round 67's
+edges of a face, `damage._paired_edges`; grey rock: 0.08; 0.12 and 0.08 with the MADs' rule), and the stage III
+hole's central A_e reads +0.5 % from the truth (+6.8 % comparing every cell). Where the change is not smooth it
+carries wrongly: a floor cell that one survey saw wholly takes the change across a removed rock's edge that the
+other saw in part (the README lists the rules tried instead).
 """
 
 from __future__ import annotations
