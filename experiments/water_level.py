@@ -12,7 +12,7 @@ import optimistix as optx
 from scipy.optimize import least_squares
 
 import jaxstereo as js
-from jaxstereo._stereo.refine import refine_problem
+from jaxstereo._stereo.refine import LEVEL_TOLERANCE_M, refine_problem
 from jaxstereo._synthetic.matches import surface_correspondences
 
 from ._common import Output
@@ -74,7 +74,7 @@ def run(out: Output, full: bool = False) -> None:
         out.log(f"{n} correspondences, noise {noise} px, tilt {tilt} deg, control {control}")
         err, std, t_optx, t_scipy, n_floor = _case(scene, n, noise, tilt, control)
         rows.append([n, noise, tilt, f"{control} ({n_floor})" if control == "floor" else control,
-                     f"{1e3 * err:+.2f}", f"{1e3 * std:.2f}", "yes" if std < 2e-3 else "NO", "-",
+                     f"{1e3 * err:+.2f}", f"{1e3 * std:.2f}", "yes" if 2 * std <= LEVEL_TOLERANCE_M else "NO", "-",
                      f"{1e3 * t_optx:.0f}", f"{1e3 * t_scipy:.0f}"])
     with jax.enable_x64(True):
         wet = js.build_scene(js.Breakwater(seed=3, damage=js.Damage(half_length_dn50=3.0, half_width_dn50=4.0,
@@ -89,7 +89,10 @@ def run(out: Output, full: bool = False) -> None:
               "Water level by bundle adjustment through refraction, starting 5 cm off (level only, poses fixed; "
               "last rows: level and right-camera pose, the pose moved by 0.2 deg and 2 mm)",
               "Exact correspondences on the synthetic breakwater with Gaussian pixel noise. Without control the level "
-              "is not determined (two nadir cameras: a level change barely moves the rays); the floor fixes it. The "
+              "is not determined (two nadir cameras: a level change barely moves the rays); the floor fixes it. A "
+              "level counts as determined when its 95 % interval (two standard deviations) is within 1 mm, the rule of "
+              "`jaxstereo refine` (whose std adds a jackknife and the world frame's share; the floor rows' is the "
+              "Gauss-Newton one alone). The "
               "error grows with the noise faster than the standard deviation says: eliminating the points (each "
               "triangulated from noisy pixels) biases their depth, and the floor control turns that bias into a level "
               "bias (about -1 mm at 0.5 px, +2 mm on the 10-degree rig). Refining the points too should remove it (not tried yet). "

@@ -475,6 +475,8 @@ def _cmd_refine(args) -> int:
     from .._stereo.refine import refine_rig
     from .images import check_pair, read_image
 
+    if not (np.isfinite(args.level_tolerance) and args.level_tolerance > 0):
+        raise JaxStereoError(f"--level-tolerance must be a positive number of metres, got {args.level_tolerance}")
     rig = load_rig(args.rig)
     left, right = read_image(args.left), read_image(args.right)
     check_pair(left, right, rig.image_size, f"left image {args.left!r}", f"right image {args.right!r}")
@@ -482,7 +484,8 @@ def _cmd_refine(args) -> int:
     control, points = _refine_control(args.control or [])
     pl, pr = _refine_correspondences(args, left, right, rig, control)
     result = refine_rig(rig, pl, pr, args.water_level_guess, refine=refine, control=control,
-                        floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points)
+                        floor_region=tuple(args.floor_x) if args.floor_x else None, control_points=points,
+                        level_tolerance_m=args.level_tolerance)
     _print_refinement(result, refine, control, points)
     if not result.converged:
         raise JaxStereoError(f"the bundle adjustment did not converge (its solves: {', '.join(result.outcomes)}): "
@@ -556,7 +559,8 @@ def _keep_guess_or_refuse(args, result):
     from .._stereo.refine import MIN_CORRESPONDENCES
 
     level, std = result.parameters["water level (m)"]
-    message = (f"water level not determined: {level:.4f} m +/- {1e3 * std:.1f} mm from {result.n_correspondences} "
+    message = (f"water level not determined: {level:.4f} m +/- {1e3 * std:.2f} mm (1 sigma; its 95 % interval "
+               f"exceeds +/- {1e3 * args.level_tolerance:g} mm, --level-tolerance) from {result.n_correspondences} "
                f"correspondences and {result.n_control} control terms; add control (--control floor with "
                "--floor-x, a dry DEM, control points)")
     if 0 <= result.n_submerged < MIN_CORRESPONDENCES:

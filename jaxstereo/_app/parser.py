@@ -199,6 +199,9 @@ def _add_refine(sub) -> None:
     p.add_argument("--matches", choices=["dense", "sift"], default="dense",
                    help="correspondences from the dense matching, spread over the image (default; SIFT when it "
                         "finds too few), or SIFT features")
+    p.add_argument("--level-tolerance", type=float, default=0.001, metavar="M",
+                   help="write the level only when its 95 %% interval (two standard deviations) is within this, m "
+                        "(default 0.001)")
     p.add_argument("--keep-guess", action="store_true",
                    help="when the images cannot determine the level, write the rig at the guessed level (said so in "
                         "its provenance) instead of refusing")

@@ -36,8 +36,8 @@ log = logging.getLogger("jaxstereo")
 
 PARAMETERS = ("water", "tilt", "right-pose")
 MIN_CORRESPONDENCES = 12
-# A parameter whose standard deviation exceeds this is reported as not determined.
-LEVEL_STD_LIMIT_M = 0.001
+# The level is written only when its 95 % interval (two standard deviations) lies within this of it, metres.
+LEVEL_TOLERANCE_M = 0.001
 
 
 def find_correspondences(left_image: np.ndarray, right_image: np.ndarray, max_points: int = 4000,
@@ -203,15 +203,16 @@ class RefineResult:
     in user units (level m, tilt deg, rotation deg, translation mm); for the level the standard deviation
     combines the fit's (`level_std_fit_m`: the larger of the Gauss-Newton one, scaled by the residuals' own
     noise, and a jackknife over 16 blocks of the image, which sees errors correlated in space) and the world
-    frame's (`level_std_frame_m`: the calibration's scale, see `scale_level_std`); `level_determined` whether that
-    standard deviation is below 1 mm (`LEVEL_STD_LIMIT_M`), every solve converged and at least
-    `MIN_CORRESPONDENCES` correspondences lie under the refined level (`n_submerged`); `rms_before_px`, `rms_after_px`
-    reprojection RMS of the inliers; `n_correspondences`, `n_control`; `steps` solver steps; `result` the
-    last solve's outcome in words ("converged", "stopped at its step limit", "diverged", ...), `outcomes` every
-    solve's in order (the solve, then a solve after each re-selection of the control terms), `converged`
-    whether each of them converged (the solves that only place the start, with the level held at the guess, are
-    recorded in the rig but need not converge); `seconds`; `surface_sigma_m` the standard deviation given to the floor
-    or DEM control terms (the larger of the one asked for and the points' own scatter about the surface).
+    frame's (`level_std_frame_m`: the calibration's scale, see `scale_level_std`); `level_determined` whether
+    twice that standard deviation (its 95 % interval) is within `level_tolerance_m` (1 mm by default), every solve
+    converged and at least `MIN_CORRESPONDENCES` correspondences lie under the refined level (`n_submerged`);
+    `rms_before_px`, `rms_after_px` reprojection RMS of the inliers; `n_correspondences`, `n_control`; `steps`
+    solver steps; `result` the last solve's outcome in words ("converged", "stopped at its step limit",
+    "diverged", ...), `outcomes` every solve's in order (the solve, then a solve after each re-selection of the
+    control terms), `converged` whether each of them converged (the solves that only place the start, with the
+    level held at the guess, are recorded in the rig but need not converge); `seconds`; `surface_sigma_m` the
+    standard deviation given to the floor or DEM control terms (the larger of the one asked for and the points'
+    own scatter about the surface).
     """
 
     rig: Rig
@@ -483,7 +484,7 @@ def refine_rig(
     floor_band_m: float = 0.01, floor_sigma_m: float = 0.001, pixel_sigma: float = 0.3,
     robust_sigmas: float = 3.0, max_steps: int = 100, floor_region: tuple[float, float] | None = None,
     control_points: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None, control_sigma_m: float = 0.001,
-    dem_sigma_m: float = 0.002,
+    dem_sigma_m: float = 0.002, level_tolerance_m: float = LEVEL_TOLERANCE_M,
 ) -> RefineResult:
     """Refine the water level (and optionally the interface tilt and the right camera's pose).
 
@@ -506,12 +507,16 @@ def refine_rig(
     - `floor_region`: (x_min, x_max) world metres where the floor is bare (e.g. in front of the toe).
     - `control_points`: `(left_pixels (k, 2), right_pixels (k, 2), xyz (k, 3))` points of known world
       coordinates (metres) seen in both images, with standard deviation `control_sigma_m`.
+    - `level_tolerance_m`: the level counts as determined (`level_determined`) only when two of its standard
+      deviations, its 95 % interval, are within this, metres.
 
     A single control plane (the floor) fixes the level only while the camera poses are fixed: with
     the right camera's rotation free too, the level trades against the cameras' convergence. Control
     points at several heights (or a dry survey) are then needed; the standard deviations say so.
     """
     start = time.perf_counter()
+    if not (np.isfinite(level_tolerance_m) and level_tolerance_m > 0):
+        raise JaxStereoError(f"the level tolerance must be a positive number of metres, got {level_tolerance_m!r}")
     which = _check_which(refine)
     pl, pr = _checked_pixels(left_pixels, right_pixels)
     model, guess = _build_model(rig, level_guess, which)
@@ -556,7 +561,7 @@ def refine_rig(
     if "water" in which and submerged < MIN_CORRESPONDENCES:
         log.warning("at the refined level (%.4f m) only %d correspondences lie under the water: the images do not "
                     "fix it there", float(interface.level), submerged)
-    determined = bool(np.isfinite(level_std) and level_std < LEVEL_STD_LIMIT_M and converged
+    determined = bool(np.isfinite(level_std) and 2 * level_std <= level_tolerance_m and converged
                       and ("water" not in which or submerged >= MIN_CORRESPONDENCES))
     fit_std = float(std[0] * 1e-2) if "water" in which else float("nan")
     calibration = dict(rig.calibration)

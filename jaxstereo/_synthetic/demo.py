@@ -204,7 +204,7 @@ def _report_markdown(s: dict) -> str:
         f"Gauge reading {r['gauge_m']:.3f} m; refined {r['water_level_m']:.4f} m +/- {r['std_m'] * 1e3:.2f} mm "
         f"(the fit's {r['std_fit_m'] * 1e3:.2f} mm and the world frame's {r['std_frame_m'] * 1e3:.2f} mm) from "
         f"{r['correspondences']} dense correspondences, {r['control_terms']} of them on the floor in front of the toe"
-        + ("" if r["determined"] else " - NOT DETERMINED to the 1 mm a survey needs (`jaxstereo refine` refuses "
+        + ("" if r["determined"] else " - NOT DETERMINED: its 95 % interval is wider than +/- 1 mm (`jaxstereo refine` refuses "
                                       "such a level; the demo goes on with it, its best estimate, nearer than the "
                                       "gauge)") + f". Truth {r['true_m']:.3f} m: the error is "
         f"{(r['water_level_m'] - r['true_m']) * 1e3:+.2f} mm, "

@@ -131,6 +131,10 @@ def test_refine_broken_input(files, tmp_path, capfd):
     code = main(["refine", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
                  "--water-level-guess", "0.17", "--control", "floor", "--floor-x", "4", "5", "-o", str(out / "rig.json")])
     _check(capfd, code, "no correspondence lies in the floor region x 4.000 to 5.000 m", out)  # out of view
+    for tolerance in ("0", "-0.001", "nan"):
+        code = main(["refine", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
+                     "--water-level-guess", "0.17", "--level-tolerance", tolerance, "-o", str(out / "rig.json")])
+        _check(capfd, code, "--level-tolerance must be a positive number of metres, got " + tolerance, out)
 
 
 def test_calibrate_broken_input(files, tmp_path, capfd):

@@ -41,8 +41,13 @@ def test_level_from_floor_control_starting_5cm_off(flume):
     result = refine_rig(Rig(left, right), pl, pr, LEVEL + 0.05, refine=("water",), control="floor",
                         floor_region=floor)
     level, std = result.parameters["water level (m)"]
-    assert abs(level - LEVEL) <= 1e-3
-    assert result.level_determined and std < 1e-3
+    assert abs(level - LEVEL) <= min(1e-3, 2 * std)
+    # The floor alone, seen by two nadir cameras, fixes the level to 0.5-1 mm (one sigma) here: determined only
+    # where its 95 % interval is within the tolerance asked for (1 mm by default).
+    assert 3e-4 < std < 1e-3 and result.level_determined == (2 * std <= 1e-3)
+    wider = refine_rig(Rig(left, right), pl, pr, LEVEL + 0.05, refine=("water",), control="floor",
+                       floor_region=floor, level_tolerance_m=2e-3)
+    assert wider.level_determined and wider.parameters["water level (m)"] == (level, std)
     assert result.rms_after_px <= 0.3 and result.rms_after_px < result.rms_before_px
     assert abs(float(result.rig.interface.level) - level) < 1e-12
 
