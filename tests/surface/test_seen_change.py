@@ -128,6 +128,33 @@ def test_a_narrow_hole_seen_in_part_keeps_its_depth_where_its_neighbours_span_it
     np.testing.assert_allclose(change_where_seen(before, deeper, 0.0, DN50)[0].z[9, 1:-1], -0.04)
 
 
+def test_a_hole_floor_corner_seen_in_part_keeps_its_depth_from_floor_cells_within_the_foot():
+    # A hole 5 cm deep, its floor 4 x 4 cells; the after-survey saw a corner of it, 2 x 2 cells, only in part (the
+    # walls hide some of each), read at the floor's depth. The corner cell's wholly seen 3 x 3 neighbours all lie
+    # on the rim (no change), so with them alone it took the rim's change, a step 5 cm high inside the hole that the
+    # profiler's foot cannot pass (flume V, round 68); the floor cells seen wholly two cells away, within a quarter of
+    # a stone, span the hole's depth and keep it.
+    x = np.arange(0.0, 0.12, SPACING)
+    flat = np.zeros((x.size, x.size))
+    hole = np.zeros(flat.shape, bool)
+    hole[10:14, 10:14] = True
+    corner = np.zeros(flat.shape, bool)
+    corner[10:12, 10:12] = True
+    before = DEM(x, x, flat, SPACING)
+
+    def surveyed(reads):  # the corner's coverage std as a DEM file gives it (its own cells' relief is nil here)
+        return DEM(x, x, np.where(corner, reads, flat - 0.05 * hole), SPACING, sigma_coverage=0.01 * corner)
+
+    assert round(0.25 * DN50 / SPACING) == 2  # the cells looked at: 5 x 5 around each
+    compared, carried = change_where_seen(before, surveyed(-0.05), 0.0, DN50)
+    assert np.array_equal(carried, corner)
+    np.testing.assert_allclose(compared.z[corner], -0.05)
+    # read past the floor (a straddling window's), each takes the range's nearer end: the floor again
+    np.testing.assert_allclose(change_where_seen(before, surveyed(-0.08), 0.0, DN50)[0].z[corner], -0.05)
+    # read at the rim, each keeps its own reading (within the range): nothing invents a depth the survey did not see
+    np.testing.assert_allclose(change_where_seen(before, surveyed(0.0), 0.0, DN50)[0].z[corner], 0.0)
+
+
 def test_a_cell_with_no_seen_neighbour_takes_the_nearest_within_a_stone_and_no_farther():
     x = np.arange(0.0, 0.2, SPACING)
     flat = np.zeros((x.size, x.size))
