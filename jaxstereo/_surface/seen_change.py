@@ -15,9 +15,10 @@ it that both saw wholly: its own change kept within the range of theirs within a
 foot's radius (5 x 5 cells of 5 mm for a 36 mm stone; see `_within_neighbours`; its 3 x 3 neighbours' until round 68,
 their median until round 64, their range less those beyond 3 MADs until round 66), else the nearest such cell's
 within a stone's size (Dn50). The after-surface there is the before-surface plus that change. On the POV-Ray
-development flume (about 30 % of the cells carried) the undamaged model's largest S is 0.15 (0.14 since round 67's
-edges of a face, `damage._paired_edges`; grey rock: 0.08; 0.12 and 0.08 with the MADs' rule), and the stage III
-hole's central A_e reads +0.5 % from the truth (+6.8 % comparing every cell). Where the change is not smooth it
+development flume (about 30 % of the cells carried) the undamaged model's largest S is 0.10 since round 68 (0.14 with
+the 3 x 3 neighbours and round 67's edges of a face, `damage._paired_edges`; grey rock: 0.12, 0.08 before), and the
+stage III hole's central A_e reads +2.4 % from the truth (+0.5 % with the 3 x 3 neighbours; +6.8 % comparing every
+cell). Where the change is not smooth it
 carries wrongly: a floor cell that one survey saw wholly takes the change across a removed rock's edge that the
 other saw in part (the README lists the rules tried instead).
 """
