@@ -18,9 +18,8 @@ within a stone's size (Dn50). The after-surface there is the before-surface plus
 development flume (about 30 % of the cells carried) the undamaged model's largest S is 0.10 since round 68 (0.14 with
 the 3 x 3 neighbours and round 67's edges of a face, `damage._paired_edges`; grey rock: 0.12, 0.08 before), and the
 stage III hole's central A_e reads +2.4 % from the truth (+0.5 % with the 3 x 3 neighbours; +6.8 % comparing every
-cell). Where the change is not smooth it
-carries wrongly: a floor cell that one survey saw wholly takes the change across a removed rock's edge that the
-other saw in part (the README lists the rules tried instead).
+cell). Where the change is not smooth it carries wrongly: a floor cell that one survey saw wholly takes the change
+across a removed rock's edge that the other saw in part (the README lists the rules tried instead).
 """
 
 from __future__ import annotations
