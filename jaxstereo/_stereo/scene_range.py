@@ -50,7 +50,7 @@ def scene_search(left: np.ndarray, right: np.ndarray, search: tuple[int, int],
     # Both ways: a left match is kept where the right image matches back to it (on a pair whose surface's disparity
     # rises from 70 to 100 px, one way found 1 % of its matches at 40-48 px, in the strip the right image does not
     # see; both ways 68.5 px at the least)
-    checked = dataclasses.replace(options, two_way=True, fattening_reach_px=0, occlusion_reach_px=0)
+    checked = dataclasses.replace(options, two_way=True, check_rows=1, fattening_reach_px=0, occlusion_reach_px=0)
     found = sgbm_disparity(coarse[0], coarse[1], lo, span, checked)
     # A match within a pixel of either end of the range (its sub-pixel value included) is where SGBM's cost fell
     # off the range (no texture, or a disparity beyond it), not a disparity found: on the development flume's
