@@ -124,8 +124,8 @@ def _mirrored_disparity(left, right, min_disparity, num_disparities, options):
     and the full-size run kept: 3.6 %; the other way: 1.0 %), and the survey's rubble figures are as good or
     better (submerged MAE 1.38 -> 1.35 mm, p95 4.37 -> 4.18 mm; docs/speed.md, round 69).
     """
-    k = options.check_rows
     h, w = left.shape[:2]
+    k = options.check_rows if h >= 2 * options.check_rows else 1  # an image too short to pair its rows: full size
     if k > 1:
         rows = h // k * k
         left, right = (cv2.resize(image[:rows], (w, rows // k), interpolation=cv2.INTER_AREA)

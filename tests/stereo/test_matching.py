@@ -71,7 +71,7 @@ def test_the_check_on_rows_averaged_in_pairs_drops_the_wrong_matches_the_full_si
 
 def test_the_mirrored_run_on_rows_in_pairs_is_the_full_size_run_of_the_averaged_pair():
     """Against a reference built another way (OpenCV's resize to half the rows, nearest-neighbour back): the
-    same disparities; an odd last row has no pair and stays unmatched."""
+    same disparities; an odd last row has no pair and stays unmatched, and a one-row pair is matched at full size."""
     left, right, _ = _square_over_fine_speckle()
     options = MatchOptions()
     h, w = left.shape
@@ -83,6 +83,8 @@ def test_the_mirrored_run_on_rows_in_pairs_is_the_full_size_run_of_the_averaged_
     odd = _mirrored_disparity(left[:-1], right[:-1], 0, 48, options)
     assert odd.shape == (h - 1, w) and np.isnan(odd[-1]).all()
     np.testing.assert_array_equal(odd[:-1], _mirrored_disparity(left[:-2], right[:-2], 0, 48, options))
+    # a single row has no pair: matched at full size, not refused by OpenCV's resize
+    assert _mirrored_disparity(left[:1], right[:1], 0, 48, options).shape == (1, w)
 
 
 def test_check_rows_below_one_is_refused():
