@@ -215,7 +215,9 @@ def _add_grid(sub) -> None:
     p.add_argument("--spacing", type=float, default=0.005, help="cell size, m (default 0.005)")
     p.add_argument("--method", choices=["median", "delaunay"], default="median",
                    help="median per cell (fast, robust; default) or linear on the Delaunay triangulation")
-    p.add_argument("--max-gap", type=float, default=0.0, help="fill holes up to this size, m (median only)")
+    p.add_argument("--max-gap", type=float, default=0.0,
+                   help="fill holes up to this size, m (median only): from the nearest seen cell, or from the lower of "
+                        "the two nearest along the stereo baseline where both lie within reach")
     p.add_argument("-o", "--output", required=True, help="DEM .npz to write")
 
 
@@ -247,6 +249,8 @@ def _add_damage(sub) -> None:
                         "takes the change of the cells around it that both surveys saw wholly (default 0: every "
                         "such cell; inf: compare every cell as surveyed)")
     p.add_argument("--spacing", type=float, default=0.005, help="grid spacing for surveys, m (default 0.005)")
-    p.add_argument("--max-gap", type=float, default=0.01, help="fill holes up to this size, m (default 0.01)")
+    p.add_argument("--max-gap", type=float, default=0.01,
+                   help="fill holes up to this size, m (default 0.01; a gap along the stereo baseline from its lower "
+                        "side)")
     p.add_argument("--profile-spacing", type=float, help="distance between profiles, m (default Dn50)")
     p.add_argument("-o", "--output", required=True, help="report folder")

@@ -11,6 +11,7 @@ from .._geometry.errors import JaxStereoError
 from .._geometry.types import PathLike
 from .._stereo.survey import Survey
 from .coverage import filled_sigma, partial_coverage_sigma, straddle_sigma
+from .gap_fill import lower_side_sources, survey_baseline_xy
 
 SIGMA_LAYERS = ("sigma_match", "sigma_calibration", "sigma_level")
 ERROR_LAYERS = SIGMA_LAYERS + ("dz_subpixel", "sigma_coverage")
@@ -119,9 +120,15 @@ class _CellHeights:
         return out
 
 
-def fill_holes(dem: DEM, max_gap_m: float) -> DEM:
+def fill_holes(dem: DEM, max_gap_m: float, baseline_xy: tuple[float, float] | None = None) -> DEM:
     """Fill empty cells whose nearest data lies within `max_gap_m` (nearest value, and the nearest cell's
-    sigma layers, with `sigma_coverage` from the range of the seen heights within reach); larger holes stay NaN."""
+    sigma layers, with `sigma_coverage` from the range of the seen heights within reach); larger holes stay NaN.
+
+    With `baseline_xy`, the survey's stereo baseline in the world's (x, y) (`gap_fill.survey_baseline_xy`), a cell
+    with seen cells within reach on both sides of it along the grid axis nearer the baseline takes the lower of the
+    two nearest instead (`gap_fill.lower_side_sources`: the surface a camera could not see there lies behind a
+    foreground).
+    """
     from scipy import ndimage
 
     empty = np.isnan(dem.z)
@@ -129,6 +136,8 @@ def fill_holes(dem: DEM, max_gap_m: float) -> DEM:
         return dem
     dist, (ii, jj) = ndimage.distance_transform_edt(empty, return_indices=True)
     fill = empty & (dist * dem.spacing <= max_gap_m)
+    if baseline_xy is not None:
+        lower_side_sources(dem.z, fill, int(np.floor(max_gap_m / dem.spacing + 1e-9)), baseline_xy, ii, jj)
 
     def filled(layer):
         out = layer.copy()
@@ -292,7 +301,7 @@ def load_surface(path: PathLike, spacing: float, x: np.ndarray | None = None, y:
         survey = survey_from_fields(fields, path)
         if len(survey) == 0:
             raise JaxStereoError(f"survey {str(path)!r} holds no points")
-        return fill_holes(grid_survey(survey, spacing, x, y), max_gap_m)
+        return fill_holes(grid_survey(survey, spacing, x, y), max_gap_m, survey_baseline_xy(survey.rig_json))
     raise JaxStereoError(f"{str(path)!r} is neither a survey nor a DEM")
 
 
