@@ -33,7 +33,8 @@ def run(out: Output, full: bool = False) -> None:
         survey, _ = js.reconstruct(images[0], images[1], rig, SWL, js.ReconstructOptions(z_range_m=(-0.05, 0.45)))
         x = surveyed[0].x if surveyed else None
         y = surveyed[0].y if surveyed else None
-        surveyed.append(js.fill_holes(js.grid_median(survey.points, 0.005, x, y), 0.01))
+        surveyed.append(js.fill_holes(js.grid_median(survey.points, 0.005, x, y), 0.01,
+                                      js.survey_baseline_xy(survey.rig_json)))
         hf = scene.heightfield
         X, Y = np.meshgrid(hf.x, hf.y)
         nodes = np.stack([X.ravel(), Y.ravel(), np.asarray(hf.z).ravel()], axis=-1)

@@ -48,6 +48,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "DemDamage", "ProfileDamage", "Zone", "damage_level", "dem_damage", "parse_slope", "profile_damage",
     ),
     "_surface.damage_report": ("StretchDamage", "stretch_damage", "write_damage_report"),
+    "_surface.gap_fill": ("survey_baseline_xy",),
     "_surface.grid": (
         "DEM", "fill_holes", "grid_delaunay", "grid_median", "grid_survey", "load_dem", "load_surface", "save_dem",
     ),
@@ -158,6 +159,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and editors
         stretch_damage as stretch_damage,
         write_damage_report as write_damage_report,
     )
+    from ._surface.gap_fill import survey_baseline_xy as survey_baseline_xy
     from ._surface.grid import (
         DEM as DEM,
         fill_holes as fill_holes,
