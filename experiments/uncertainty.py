@@ -126,7 +126,7 @@ def trial(seed: int, size=(864, 576), log=print) -> list[dict]:
         survey, _ = js.reconstruct(images[0], images[1], rig, given,
                                    js.ReconstructOptions(z_range_m=(-0.05, 0.45), water_level_std_m=LEVEL_STD_M))
         x, y = (dems[0].x, dems[0].y) if dems else (None, None)
-        dems.append(js.fill_holes(js.grid_survey(survey, 0.005, x, y), 0.01))
+        dems.append(js.fill_holes(js.grid_survey(survey, 0.005, x, y), 0.01, js.survey_baseline_xy(survey.rig_json)))
         hf = scene.heightfield
         X, Y = np.meshgrid(hf.x, hf.y)
         nodes = np.stack([X.ravel(), Y.ravel(), np.asarray(hf.z).ravel()], axis=-1)
