@@ -123,8 +123,7 @@ def run_pair(job: PairJob) -> dict:
 def _process_pair(job: PairJob) -> dict:
     from .._stereo.reconstruct import ReconstructOptions, reconstruct
     from .._stereo.survey import plot_survey_preview, save_survey
-    from .._surface.gap_fill import survey_baseline_xy
-    from .._surface.grid import fill_holes, grid_survey, load_dem, save_dem
+    from .._surface.grid import grid_survey_filled, load_dem, save_dem
     from .images import check_pair, read_image
 
     pair = job.pair
@@ -155,7 +154,7 @@ def _process_pair(job: PairJob) -> dict:
     if job.reference_dir is not None and (job.reference_dir / RESULT).is_file():
         reference_dem = load_dem(job.reference_dir / "dem.npz")
     axes = (reference_dem.x, reference_dem.y) if reference_dem is not None else (None, None)
-    dem = fill_holes(grid_survey(survey, job.spacing, *axes), job.max_gap, survey_baseline_xy(survey.rig_json))
+    dem = grid_survey_filled(survey, job.spacing, job.max_gap, *axes)
     save_dem(dem, out / "dem.npz")
     lap("grid (s)")
     row = {"status": "ok", "points": len(survey), "submerged_fraction": round(info["submerged_fraction"], 4),

@@ -316,8 +316,7 @@ def _print_sigma(summary: dict) -> None:
 
 def _cmd_grid(args) -> int:
     from .._stereo.survey import load_survey
-    from .._surface.gap_fill import survey_baseline_xy
-    from .._surface.grid import SIGMA_LAYERS, fill_holes, grid_delaunay, grid_survey, save_dem
+    from .._surface.grid import SIGMA_LAYERS, grid_delaunay, grid_survey_filled, save_dem
 
     survey = load_survey(args.survey)
     if len(survey) == 0:
@@ -327,7 +326,7 @@ def _cmd_grid(args) -> int:
     if args.method == "delaunay":
         dem = grid_delaunay(survey.points, args.spacing)
     else:
-        dem = fill_holes(grid_survey(survey, args.spacing), args.max_gap, survey_baseline_xy(survey.rig_json))
+        dem = grid_survey_filled(survey, args.spacing, args.max_gap)
     save_dem(dem, args.output)
     filled = float(np.isfinite(dem.z).mean()) if dem.z.size else 0.0
     print(f"grid: {len(survey)} points -> {dem.z.shape[1]} x {dem.z.shape[0]} cells of {args.spacing:g} m "

@@ -152,6 +152,13 @@ def fill_holes(dem: DEM, max_gap_m: float, baseline_xy: tuple[float, float] | No
     return out
 
 
+def grid_survey_filled(survey: Survey, spacing: float, max_gap_m: float, x: np.ndarray | None = None,
+                       y: np.ndarray | None = None) -> DEM:
+    """`grid_survey` with its gaps up to `max_gap_m` metres filled (`fill_holes`), a gap along the survey's own
+    stereo baseline from its lower side."""
+    return fill_holes(grid_survey(survey, spacing, x, y), max_gap_m, survey_baseline_xy(survey.rig_json))
+
+
 def grid_survey(survey: Survey, spacing: float, x: np.ndarray | None = None, y: np.ndarray | None = None,
                 min_count: int = 1) -> DEM:
     """`grid_median` of a survey's points, with each cell's sigma layers when the survey has error bars.
@@ -301,7 +308,7 @@ def load_surface(path: PathLike, spacing: float, x: np.ndarray | None = None, y:
         survey = survey_from_fields(fields, path)
         if len(survey) == 0:
             raise JaxStereoError(f"survey {str(path)!r} holds no points")
-        return fill_holes(grid_survey(survey, spacing, x, y), max_gap_m, survey_baseline_xy(survey.rig_json))
+        return grid_survey_filled(survey, spacing, max_gap_m, x, y)
     raise JaxStereoError(f"{str(path)!r} is neither a survey nor a DEM")
 
 

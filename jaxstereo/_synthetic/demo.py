@@ -32,8 +32,7 @@ from .._stereo.refine import refine_rig
 from .._stereo.survey import plot_survey_preview, save_survey
 from .._surface.damage_report import write_damage_report
 from .._surface.damage_uncertainty import stretch_damage_with_sigma
-from .._surface.gap_fill import survey_baseline_xy
-from .._surface.grid import fill_holes, grid_survey, save_dem
+from .._surface.grid import grid_survey_filled, save_dem
 from .board_render import board_poses, render_board
 from .flume_rig import flume_rig, jpeg, realistic_rig_spec
 from .render import render_view
@@ -157,7 +156,7 @@ def _survey_stages(out: Path, rig: Rig, stages, step) -> tuple[list, dict]:
                          "seconds": info["seconds"]}
         x = dems[0].x if dems else None
         y = dems[0].y if dems else None
-        dem = fill_holes(grid_survey(survey, 0.005, x, y), 0.01, survey_baseline_xy(survey.rig_json))
+        dem = grid_survey_filled(survey, 0.005, 0.01, x, y)
         save_dem(dem, out / "surveys" / f"stage{name}_dem.npz")
         dems.append(dem)
     return dems, summary
