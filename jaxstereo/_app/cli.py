@@ -180,7 +180,6 @@ def _cmd_reconstruct(args) -> int:
 
     from .images import check_pair, read_image
     from .io import write_bytes_atomic, write_text_atomic
-    from .plots import import_matplotlib_in_background
 
     output = Path(args.output)
     if output.suffix != ".npz":
@@ -226,19 +225,9 @@ def _cmd_reconstruct(args) -> int:
         def error_rows(fields, first, stop):
             writing.append(filer.submit(writer.error_rows, fields, first, stop))
 
-        def stage(name):
-            # The preview's matplotlib is imported while the points are triangulated: XLA's work and the photometric
-            # check leave a core idle there. Imported at the command's start, its Python work slowed the matching and
-            # the sub-pixel step instead (their numpy steps need the GIL between array operations). On the
-            # development flume's pair (2 cores), a fresh command's median fell from 2.75 to 2.60 s, its CPU time
-            # from 4.54 to 4.38 s (12 alternated runs each).
-            if name == "triangulate":
-                import_matplotlib_in_background()
-
         try:
             survey, summary = reconstruct(left, right, rig, args.water_level, options, on_points=ahead,
-                                          match_ahead=getattr(args, "match_ahead", None), on_error_rows=error_rows,
-                                          on_stage=stage)
+                                          match_ahead=getattr(args, "match_ahead", None), on_error_rows=error_rows)
             start = time.perf_counter()
             writing.append(filer.submit(_finish_survey_files, writer, survey, args.ply))
             png = drawing[0].result()

@@ -7,36 +7,6 @@ import numpy as np
 from .io import write_bytes_atomic
 
 
-def import_matplotlib_in_background() -> None:
-    """Start importing matplotlib's figure and Agg canvas on a daemon thread and return at once.
-
-    For a command that draws a figure after seconds of numerical work: the import (about 0.4 s) overlaps
-    that work instead of adding to it. Importing the same modules later simply waits for this import.
-
-    The cyclic garbage collector is off while it imports. Loading a compiled extension holds the C library's
-    loader lock, and matplotlib's font module creates Python objects while it loads; a collection there ran JAX's
-    Python callback (`gc.callbacks`), which let another thread take the GIL, and numpy on that thread waited for
-    the loader lock (`dladdr`, when it checks whether it may reuse a temporary) while the import waited for the
-    GIL: a `jaxstereo reconstruct` of the POV-Ray flume's board hung there (round 56, seen with gdb). Without a
-    collection no Python code runs inside the load, and the importing thread keeps the GIL until it is done.
-    """
-    import gc
-    import importlib
-    import threading
-
-    def load():
-        collecting = gc.isenabled()
-        gc.disable()
-        try:
-            for name in ("matplotlib.figure", "matplotlib.backends.backend_agg"):
-                importlib.import_module(name)
-        finally:
-            if collecting:
-                gc.enable()
-
-    threading.Thread(target=load, name="import-matplotlib", daemon=True).start()
-
-
 def new_figure(nrows: int = 1, ncols: int = 1, figsize=(6.4, 4.8)):
     """A matplotlib `Figure` and its axes, with a constrained layout.
 
@@ -49,7 +19,7 @@ def new_figure(nrows: int = 1, ncols: int = 1, figsize=(6.4, 4.8)):
     return fig, fig.subplots(nrows, ncols)
 
 
-PNG_COMPRESSION = 3  # zlib level: a survey preview encodes in 0.08 s instead of 0.18 s at PIL's 6, 9 % larger
+PNG_COMPRESSION = 3  # zlib level: a figure of images encodes in half the time of PIL's 6, about 9 % larger
 
 
 def figure_png(fig, dpi: int = 120) -> bytes:

@@ -373,8 +373,7 @@ def reconstruct(
       fields (`cov`, `sigma_z_match`, `sigma_z_level`, `dz_subpixel`: the arrays the survey will hold) are known,
       in order, from the first row to the last: the command line writes them to the survey's file meanwhile.
     - `on_stage`: called with each stage's name as it starts (the summary's `seconds` keys less " (s)":
-      "rectify+match", "sub-pixel", "triangulate", "uncertainty"), on the calling thread. The command line
-      imports matplotlib for its preview once the triangulation starts: XLA's work leaves a core free there.
+      "rectify+match", "sub-pixel", "triangulate", "uncertainty"), on the calling thread: a caller's progress.
 
     **Returns:** `(survey, summary)`; the summary holds point counts (and how many were dropped and why,
     those above the height range apart), the submerged fraction, the height range used (`height_range_m`), the

@@ -228,6 +228,8 @@ def save_ply(survey: Survey, path: PathLike) -> None:
 
 # (left, bottom, width, height) in figure fractions: the image panel, the top view, the colour bar
 PREVIEW_PANELS = ((0.06, 0.1, 0.39, 0.78), (0.52, 0.1, 0.38, 0.78), (0.92, 0.15, 0.012, 0.68))
+PREVIEW_SIZE_PX = (1560, 576)  # width, height
+SUBMERGED_COLOUR = (31, 119, 180)  # the legend's square: matplotlib's first colour
 
 
 def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title: str = "") -> None:
@@ -238,54 +240,45 @@ def plot_survey_preview(survey: Survey, image_size: tuple[int, int], path, title
 
 
 def survey_preview_png(survey: Survey, image_size: tuple[int, int], title: str = "") -> bytes:
-    """The survey's preview, a PNG in memory: height in the left image's pixels (`image_size` (w, h) pixels),
-    and a top view (x, y) coloured by height.
+    """The survey's preview, a PNG in memory (`PREVIEW_SIZE_PX`): height in the left image's pixels (`image_size`
+    (w, h) pixels) and a top view (x, y metres) coloured by height (viridis, the heights' 1st to 99th percentile),
+    with a colour bar, and in the top view the submerged share.
 
-    The panels sit at fixed places (`PREVIEW_PANELS`) instead of a constrained layout, which measured the
-    text of every tick to place them: on the development flume's wet breakwater (1.3 million points, 2-core
-    machine) the preview takes 0.6 s instead of 1.3 s, in a command that draws one per survey.
+    Drawn with Pillow (`_app/raster_figure.py`), not matplotlib, whose import and axes cost a fresh `reconstruct`
+    about a sixth of its time (docs/speed.md, round 70). At most about 1000 pixels of the image are drawn per side.
     """
-    from matplotlib.figure import Figure
+    from .._app.raster_figure import RasterFigure, colour_mapped
 
-    from .._app.plots import figure_png
-
-    fig = Figure(figsize=(13, 4.8))
-    axes = [fig.add_axes(box) for box in PREVIEW_PANELS[:2]]
     w, h = image_size
     z = survey.points[:, 2]
     if len(survey):
-        vmin, vmax = np.percentile(z, [1, 99])
+        vmin, vmax = (float(v) for v in np.percentile(z, [1, 99]))
     else:
         vmin, vmax = 0.0, 1.0
-    step = max(1, int(np.ceil(max(w, h) / 1000)))  # at most ~1000 px drawn: the figure is ~800 px wide anyway
+    step = max(1, int(np.ceil(max(w, h) / 1000)))  # at most ~1000 px drawn: a panel is ~600 px wide anyway
     gw, gh = -(-w // step), -(-h // step)
     grid = np.full((gh, gw), np.nan)
     pu, pv = (np.floor((survey.pixels[:, k] + 0.5) / step).astype(np.intp) for k in (0, 1))
     ok = (pu >= 0) & (pu < gw) & (pv >= 0) & (pv < gh)
     grid[pv[ok], pu[ok]] = z[ok]
-    im = axes[0].imshow(grid, cmap="viridis", vmin=vmin, vmax=vmax, extent=(-0.5, gw * step - 0.5, gh * step - 0.5, -0.5),
-                        interpolation="nearest")
-    axes[0].set_title("height (m) in the left image", y=1.0)  # y given: no search for ticks above the axes
-    axes[0].set_xlabel("u (px)")
-    axes[0].set_ylabel("v (px)")
+    fig = RasterFigure(*PREVIEW_SIZE_PX)
+    fig.image_panel(fig.box(PREVIEW_PANELS[0]), colour_mapped(grid, vmin, vmax),
+                    (-0.5, gw * step - 0.5, gh * step - 0.5, -0.5), "height (m) in the left image", "u (px)", "v (px)")
     top, extent = _top_view(survey.points)
-    axes[1].imshow(top, cmap="viridis", vmin=vmin, vmax=vmax, origin="lower", extent=extent, interpolation="nearest")
+    panel = fig.image_panel(fig.box(PREVIEW_PANELS[1]), colour_mapped(top[::-1], vmin, vmax), extent, "top view",
+                            "x (m)", "y (m)", anchor="W")  # a narrow top view sits beside the image panel
     if np.isfinite(survey.water_level) and survey.submerged.any():
-        axes[1].plot([], [], "s", color="tab:blue", label=f"{100 * survey.submerged.mean():.0f}% submerged")
-        axes[1].legend(loc="upper right", fontsize=8)
-    axes[1].set_aspect("equal", anchor="W")  # a narrow top view sits beside the image panel
-    axes[1].set_xlabel("x (m)")
-    axes[1].set_ylabel("y (m)")
-    axes[1].set_title("top view", y=1.0)
-    fig.colorbar(im, cax=fig.add_axes(PREVIEW_PANELS[2]), label="z (m)")
-    fig.suptitle(title or f"survey: {len(survey)} points, model {survey.model}", y=0.98)
-    return figure_png(fig)
+        fig.legend(panel, SUBMERGED_COLOUR, f"{100 * survey.submerged.mean():.0f}% submerged")
+    fig.colour_bar(fig.box(PREVIEW_PANELS[2]), vmin, vmax, "z (m)")
+    fig.text((PREVIEW_SIZE_PX[0] / 2, 12), title or f"survey: {len(survey)} points, model {survey.model}",
+             round(1.2 * fig.text_px), "mt")
+    return fig.png()
 
 
 def _top_view(points: np.ndarray, cells: int = 500):
     """Mean height on a regular (x, y) grid of about `cells` cells along the longer side (NaN where empty);
-    returns `(image, extent)` for `imshow(origin="lower")`. Drawing an image, not a scatter of every point,
-    keeps the preview fast for millions of points."""
+    returns `(image, extent)`: row 0 at the lowest y, the extent `(left, right, bottom, top)` metres. Drawing an
+    image, not a scatter of every point, keeps the preview fast for millions of points."""
     if points.shape[0] == 0:
         return np.full((1, 1), np.nan), (0.0, 1.0, 0.0, 1.0)
     x, y = points[:, 0], points[:, 1]  # column by column: numpy reduces an (n, 2) array's axis 0 4x slower

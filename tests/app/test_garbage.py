@@ -33,30 +33,3 @@ def test_the_command_collects_rarely_with_jax_set_aside_and_a_caller_keeps_its_o
     # frozen already (the Python 3.12 of an H100 machine's image: 375, even with `-S`).
     assert frozen - at_start > 50_000
     assert _collector("library") == [(default, at_start)] * 2  # as the process started: nothing set, nothing frozen
-
-
-# matplotlib imported on its thread beside JAX (whose `gc.callbacks` holds a Python function): what the collector
-# looked like during and after the import.
-BACKGROUND = """
-import gc, sys, threading
-import jax
-from jaxstereo._app.plots import import_matplotlib_in_background
-seen = []
-importing = "import-matplotlib"
-gc.callbacks.append(lambda phase, info: seen.append(  # a collection on the importing thread before the import ended
-    threading.current_thread().name == importing and "matplotlib.backends.backend_agg" not in sys.modules))
-if sys.argv[1] == "off":
-    gc.disable()
-import_matplotlib_in_background()
-next(t for t in threading.enumerate() if t.name == "import-matplotlib").join()
-print("matplotlib.backends.backend_agg" in sys.modules, gc.isenabled(), any(seen))
-"""
-
-
-def test_matplotlib_is_imported_on_its_thread_with_no_collection_there_and_the_collector_restored():
-    """A collection inside the load of matplotlib's compiled font module ran JAX's Python callback there and let a
-    numpy thread deadlock against the loader lock (`plots.import_matplotlib_in_background`): no collection runs on
-    the importing thread, and the collector is left as it was found, on or off."""
-    for state, enabled in (("on", "True"), ("off", "False")):
-        done = subprocess.run([sys.executable, "-c", BACKGROUND, state], capture_output=True, text=True, check=True)
-        assert done.stdout.split() == ["True", enabled, "False"], (state, done.stdout, done.stderr[-2000:])
