@@ -5,8 +5,9 @@ flume-score compares the damage profile nearest the hole's centre with the true 
 grids the stage I and III wet surveys of a scored work folder (moved into the truth frame through the left camera, as
 flume-score moves them) with the cells moved by 0, 1/3 and 2/3 of a cell in x and y, and prints the central A_e and
 d_e errors at each offset; `--surface truth` grids the true surfaces the same way (what perfect surveys would give),
-`--surface oracle` the surveys with their empty cells given the true heights. The truth's sweep is flume-score's own
-(`true_profile_damage`, read from `../shared/tools/flume-score`).
+`--surface oracle` the surveys with their empty cells given the true heights. A survey's empty cells are filled as
+`jaxstereo damage` fills them (along the baseline from the lower side, since round 69; this script since round 70).
+The truth's sweep is flume-score's own (`true_profile_damage`, read from `../shared/tools/flume-score`).
 
 Run: python experiments/damage_grid_offsets.py DATA WORK [--spacing 0.005] [--surface survey|truth|oracle]
 (WORK: a `flume-score --work` folder holding `bw_I_wet_exact.npz`, `bw_III_wet_exact.npz` and `rig_main.json`).
@@ -25,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the checkout
 
 from jaxstereo._surface.damage_report import stretch_damage
+from jaxstereo._surface.gap_fill import survey_baseline_xy
 from jaxstereo._surface.grid import DEM, fill_holes, grid_median
 
 SCORER = Path(__file__).resolve().parents[1].parent / "shared" / "tools" / "flume-score"
@@ -39,6 +41,16 @@ def _scorer():
     module = importlib.util.module_from_spec(spec)
     loader.exec_module(module)
     return module
+
+
+def _baseline_in_truth(rig_json: str, to_truth) -> tuple[float, float] | None:
+    """The survey's stereo baseline in the truth frame's (x, y): gaps are filled along it from their lower side,
+    as `jaxstereo damage` fills them in the survey's own frame (`gap_fill.survey_baseline_xy`)."""
+    b = survey_baseline_xy(rig_json)
+    if b is None:
+        return None
+    ends = to_truth(np.array([[0.0, 0.0, 0.0], [b[0], b[1], 0.0]]))
+    return float(ends[1, 0] - ends[0, 0]), float(ends[1, 1] - ends[0, 1])
 
 
 def main(argv=None) -> None:
@@ -59,8 +71,9 @@ def main(argv=None) -> None:
     def near(P):
         return P[np.abs(P[:, 1] - yc) < HALF_WIDTH]
 
-    surveyed = {st: near(to_truth(np.load(Path(args.work) / f"bw_{st}_wet_exact.npz")["points"]))
-                for st in ("I", "III")}
+    files = {st: np.load(Path(args.work) / f"bw_{st}_wet_exact.npz") for st in ("I", "III")}
+    surveyed = {st: near(to_truth(files[st]["points"])) for st in ("I", "III")}
+    baseline = _baseline_in_truth(str(files["I"]["rig"]), to_truth)
     true = {st: near(np.stack([X.ravel(), Y.ravel(), g[st].astype(float).ravel()], 1)) for st in ("I", "III")}
     truth = fs.true_profile_damage(g, bw, yc)
     sp, rows = args.spacing, []
@@ -74,7 +87,7 @@ def main(argv=None) -> None:
                 dem = exact if args.surface == "truth" else grid_median(surveyed[st], sp, x, y)
                 if args.surface == "oracle":
                     dem = DEM(x, y, np.where(np.isfinite(dem.z), dem.z, exact.z), sp)
-                dems[st] = fill_holes(dem, MAX_GAP)
+                dems[st] = fill_holes(dem, MAX_GAP, baseline if args.surface != "truth" else None)
             result = stretch_damage(dems["I"], dems["III"], bw["dn50"], bw["slope"], level, (bw["toe"], 0.0), 0.005)
             y_profile, p = min(result.profiles, key=lambda item: abs(item[0] - yc))
             rows.append((fx * sp, fy * sp, y_profile - yc, (p.A_e / truth["Ae"] - 1) * 100,
