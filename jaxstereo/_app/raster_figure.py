@@ -92,9 +92,23 @@ def font(size_px: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
         path = os.path.join(spec.submodule_search_locations[0], "mpl-data", "fonts", "ttf", "DejaVuSans.ttf")
         try:
             return ImageFont.truetype(path, size_px)
-        except OSError:
+        except (OSError, ImportError):  # the file gone, or a Pillow built without FreeType
             pass
-    return ImageFont.load_default(size_px)
+    return ImageFont.load_default(size_px)  # a bitmap font, its one size, without FreeType
+
+
+def _anchored_text(draw: ImageDraw.ImageDraw, xy, text: str, face, anchor: str, fill) -> None:
+    """`text` placed at `xy` by its `anchor` (Pillow's two letters: l/m/r across, then a/t/m/b/s/d down). Pillow
+    places it with FreeType fonts; a bitmap font (Pillow without FreeType) is placed here from its box, the
+    baseline taken as the box's bottom."""
+    if isinstance(face, ImageFont.FreeTypeFont):
+        draw.text(xy, text, fill=fill, font=face, anchor=anchor)
+        return
+    left, top, right, bottom = draw.textbbox((0, 0), text, font=face)
+    across = {"l": 0.0, "m": 0.5, "r": 1.0}[anchor[0]]
+    down = {"a": 0.0, "t": 0.0, "m": 0.5}.get(anchor[1], 1.0)
+    draw.text((xy[0] - left - across * (right - left), xy[1] - top - down * (bottom - top)), text, fill=fill,
+              font=face)
 
 
 class Panel(NamedTuple):
@@ -128,22 +142,29 @@ class RasterFigure:
         left, bottom, width, height = fractions
         return round(left * w), round((1 - bottom - height) * h), round(width * w), round(height * h)
 
+    def _face(self, text: str, size_px: int | None):
+        """The font at `size_px` (the labels' size when None), and `text` as it can draw it: a bitmap font (Pillow
+        without FreeType) has Latin-1 only, and a hyphen for the minus sign."""
+        face = font(size_px or self.text_px)
+        return face, text if isinstance(face, ImageFont.FreeTypeFont) else text.replace("\u2212", "-")
+
     def text(self, xy, text: str, size_px: int | None = None, anchor: str = "la", rotated: bool = False) -> None:
         """`text` at pixel `xy`, placed by Pillow's `anchor` (e.g. "mb": its middle and baseline there); `rotated`
         turns it a quarter anticlockwise (reading upward) about its middle, which is put at `xy`."""
-        face = font(size_px or self.text_px)
+        face, text = self._face(text, size_px)
         if not rotated:
-            self.draw.text(xy, text, fill=INK, font=face, anchor=anchor)
+            _anchored_text(self.draw, xy, text, face, anchor, INK)
             return
-        left, top, right, bottom = self.draw.textbbox((0, 0), text, font=face, anchor="lt")
+        left, top, right, bottom = self.draw.textbbox((0, 0), text, font=face)
         mask = Image.new("L", (right - left + 2, bottom - top + 2), 0)
-        ImageDraw.Draw(mask).text((1 - left, 1 - top), text, fill=255, font=face, anchor="lt")
+        ImageDraw.Draw(mask).text((1 - left, 1 - top), text, fill=255, font=face)
         mask = mask.rotate(90, expand=True)
         corner = (round(xy[0] - mask.width / 2), round(xy[1] - mask.height / 2))
         self.image.paste(Image.new("RGB", mask.size, INK), corner, mask)
 
     def text_width(self, text: str, size_px: int | None = None) -> int:
-        left, _, right, _ = self.draw.textbbox((0, 0), text, font=font(size_px or self.text_px))
+        face, text = self._face(text, size_px)
+        left, _, right, _ = self.draw.textbbox((0, 0), text, font=face)
         return right - left
 
     def image_panel(self, box: tuple[int, int, int, int], rgb: np.ndarray, extent, title: str = "", xlabel: str = "",

@@ -140,3 +140,23 @@ def test_the_preview_does_not_import_matplotlib():
               "print(png[:4] == b'\\x89PNG', any(m.startswith('matplotlib') for m in sys.modules))")
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
     assert done.stdout.split() == ["True", "False"], done.stderr[-2000:]
+
+
+def test_without_freetype_the_preview_is_drawn_in_pillows_bitmap_font(monkeypatch):
+    """A Pillow built without FreeType has only its bitmap font: the text is placed from its box instead."""
+    import pytest
+    from PIL import ImageFont
+
+    from jaxstereo._app import raster_figure
+
+    bitmap = getattr(ImageFont, "load_default_imagefont", None)  # Pillow 10.1 has none to ask for
+    if bitmap is None:
+        pytest.skip("this Pillow cannot give its bitmap font while it has FreeType")
+    monkeypatch.setattr(raster_figure, "font", lambda size_px: bitmap())
+    out = _decoded(survey_preview_png(_ramp_survey(), (400, 300), "ramp"))
+    assert out.shape == (PREVIEW_SIZE_PX[1], PREVIEW_SIZE_PX[0], 3)
+    ink = (out < 100).all(axis=2)
+    assert ink[:40].sum() > 20  # the title, near the top
+    fig = RasterFigure(*PREVIEW_SIZE_PX)
+    left, top, width, height = fig.box(PREVIEW_PANELS[0])
+    assert ink[top + height + 6:top + height + 30, left:left + width].sum() > 50  # the x tick labels under the panel
