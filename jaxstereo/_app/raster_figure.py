@@ -179,7 +179,7 @@ class RasterFigure:
         left = bl + (bw - pw) // 2 if anchor == "C" else bl
         top = bt + (bh - ph) // 2
         panel = Panel(left, top, pw, ph, tuple(float(e) for e in extent))
-        picture = Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8), "RGB")
+        picture = Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8))
         self.image.paste(picture.resize((pw, ph), Image.Resampling.NEAREST), (left, top))
         self.draw.rectangle((left - 1, top - 1, left + pw, top + ph), outline=INK)
         self._ticks(panel, xlabel, ylabel)
@@ -214,7 +214,7 @@ class RasterFigure:
         ticks and their labels on its right and the `label` beyond them."""
         left, top, width, height = box
         rows = viridis()[np.rint(np.linspace(255, 0, height)).astype(np.intp)]
-        self.image.paste(Image.fromarray(np.repeat(rows[:, None], width, axis=1), "RGB"), (left, top))
+        self.image.paste(Image.fromarray(np.repeat(rows[:, None], width, axis=1)), (left, top))
         self.draw.rectangle((left - 1, top - 1, left + width, top + height), outline=INK)
         span = vmax - vmin if vmax > vmin else 1.0
         ticks = nice_ticks(vmin, vmax)
