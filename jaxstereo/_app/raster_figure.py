@@ -85,16 +85,19 @@ def tick_labels(ticks: np.ndarray) -> list[str]:
 
 @functools.cache
 def font(size_px: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
-    """DejaVu Sans at `size_px` pixels, from matplotlib's font files (found, not imported); Pillow's default font
-    where that file is missing."""
+    """DejaVu Sans at `size_px` pixels, from matplotlib's font files (found, not imported); Pillow's own font at that
+    size where the file is missing, and its bitmap font (one size) where Pillow was built without FreeType."""
     spec = importlib.util.find_spec("matplotlib")
-    if spec is not None and spec.submodule_search_locations:
-        path = os.path.join(spec.submodule_search_locations[0], "mpl-data", "fonts", "ttf", "DejaVuSans.ttf")
-        try:
-            return ImageFont.truetype(path, size_px)
-        except (OSError, ImportError):  # the file gone, or a Pillow built without FreeType
-            pass
-    return ImageFont.load_default(size_px)  # a bitmap font, its one size, without FreeType
+    folder = spec.submodule_search_locations[0] if spec is not None and spec.submodule_search_locations else None
+    try:
+        if folder is not None:
+            try:
+                return ImageFont.truetype(os.path.join(folder, "mpl-data", "fonts", "ttf", "DejaVuSans.ttf"), size_px)
+            except OSError:  # the file gone: Pillow's own
+                pass
+        return ImageFont.load_default(size_px)  # FreeType's, at this size
+    except ImportError:  # no FreeType: a size asks for it too
+        return ImageFont.load_default()
 
 
 def _anchored_text(draw: ImageDraw.ImageDraw, xy, text: str, face, anchor: str, fill) -> None:

@@ -144,16 +144,21 @@ def test_the_preview_does_not_import_matplotlib():
 
 def test_without_freetype_the_preview_is_drawn_in_pillows_bitmap_font(monkeypatch):
     """A Pillow built without FreeType has only its bitmap font: the text is placed from its box instead."""
-    import pytest
     from PIL import ImageFont
 
     from jaxstereo._app import raster_figure
 
-    bitmap = getattr(ImageFont, "load_default_imagefont", None)  # Pillow 10.1 has none to ask for
-    if bitmap is None:
-        pytest.skip("this Pillow cannot give its bitmap font while it has FreeType")
-    monkeypatch.setattr(raster_figure, "font", lambda size_px: bitmap())
-    out = _decoded(survey_preview_png(_ramp_survey(), (400, 300), "ramp"))
+    class NoFreeType:  # what Pillow holds for its FreeType module when it was built without one
+        def __getattr__(self, name):
+            raise ImportError("The _imagingft C module is not installed")
+
+    monkeypatch.setattr(ImageFont, "core", NoFreeType())
+    raster_figure.font.cache_clear()
+    try:
+        assert not isinstance(raster_figure.font(16), ImageFont.FreeTypeFont)
+        out = _decoded(survey_preview_png(_ramp_survey(), (400, 300), "ramp"))
+    finally:
+        raster_figure.font.cache_clear()
     assert out.shape == (PREVIEW_SIZE_PX[1], PREVIEW_SIZE_PX[0], 3)
     ink = (out < 100).all(axis=2)
     assert ink[:40].sum() > 20  # the title, near the top
