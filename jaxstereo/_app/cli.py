@@ -466,6 +466,8 @@ def _cmd_refine(args) -> int:
 
     if not (np.isfinite(args.level_tolerance) and args.level_tolerance > 0):
         raise JaxStereoError(f"--level-tolerance must be a positive number of metres, got {args.level_tolerance}")
+    if args.max_points is not None and args.max_points < 1:
+        raise JaxStereoError(f"--max-points must be a positive number of correspondences, got {args.max_points}")
     rig = load_rig(args.rig)
     left, right = read_image(args.left), read_image(args.right)
     check_pair(left, right, rig.image_size, f"left image {args.left!r}", f"right image {args.right!r}")
@@ -512,17 +514,20 @@ def _refine_correspondences(args, left, right, rig, control):
     """Correspondences from the dense matching (SIFT when it finds too few), or SIFT on request; against a DEM
     `control`, measured along the rows as the survey that made it measures its points."""
     from .._stereo.correspondences import dense_correspondences
-    from .._stereo.refine import find_correspondences
+    from .._stereo.refine import CORRESPONDENCES, DEM_CORRESPONDENCES, find_correspondences
     from .._surface.grid import DEM
 
+    max_points = args.max_points
+    if max_points is None:
+        max_points = DEM_CORRESPONDENCES if isinstance(control, DEM) else CORRESPONDENCES
     if args.matches == "dense":
         estimator = "survey" if isinstance(control, DEM) else "lucas-kanade"
-        pl, pr = dense_correspondences(left, right, rig, args.water_level_guess, args.max_points, estimator)
+        pl, pr = dense_correspondences(left, right, rig, args.water_level_guess, max_points, estimator)
         source = "the dense matching"
     if args.matches == "sift" or len(pl) < MIN_DENSE_CORRESPONDENCES:
         if args.matches == "dense":
             print(f"refine: only {len(pl)} dense matches; SIFT instead")
-        pl, pr = find_correspondences(left, right, args.max_points)
+        pl, pr = find_correspondences(left, right, max_points)
         source = "SIFT"
     print(f"refine: {len(pl)} correspondences from {source}")
     return pl, pr

@@ -135,6 +135,10 @@ def test_refine_broken_input(files, tmp_path, capfd):
         code = main(["refine", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
                      "--water-level-guess", "0.17", "--level-tolerance", tolerance, "-o", str(out / "rig.json")])
         _check(capfd, code, "--level-tolerance must be a positive number of metres, got " + tolerance, out)
+    for count in ("0", "-5"):
+        code = main(["refine", str(files / "left.png"), str(files / "right.png"), "--rig", str(files / "rig.json"),
+                     "--water-level-guess", "0.17", "--max-points", count, "-o", str(out / "rig.json")])
+        _check(capfd, code, "--max-points must be a positive number of correspondences, got " + count, out)
 
 
 def test_calibrate_broken_input(files, tmp_path, capfd):
