@@ -513,8 +513,8 @@ def _refine_control(items: list[str]):
 def _refine_correspondences(args, left, right, rig, control):
     """Correspondences from the dense matching (SIFT when it finds too few), or SIFT on request; against a DEM
     `control`, measured along the rows as the survey that made it measures its points."""
-    from .._stereo.correspondences import dense_correspondences
-    from .._stereo.refine import CORRESPONDENCES, DEM_CORRESPONDENCES, find_correspondences
+    from .._stereo.correspondences import CORRESPONDENCES, DEM_CORRESPONDENCES, dense_correspondences
+    from .._stereo.refine import find_correspondences
     from .._surface.grid import DEM
 
     max_points = args.max_points

@@ -38,16 +38,6 @@ PARAMETERS = ("water", "tilt", "right-pose")
 MIN_CORRESPONDENCES = 12
 # The level is written only when its 95 % interval (two standard deviations) lies within this of it, metres.
 LEVEL_TOLERANCE_M = 0.001
-# Correspondences drawn for a refinement (at most, one per cell of a grid over the image). Against a dry survey's
-# DEM the level rests on how the wet pair's submerged points sit on that DEM, and which 2000 pixels are drawn moves
-# it by more than its std says: on six POV-Ray flumes (round 71) the DEM-controlled level was +0.22, -0.27, +0.08,
-# +0.16, -0.64 and -0.53 mm off with 2000 (RMS 0.37 mm, two past the scorecard's 0.5 mm, at 2.0 and 2.2 std), and
-# with 4000, 6000, 8000 and 12000 the RMS was 0.29, 0.29, 0.32 and 0.31 mm (Z4, 8 cm of water, stays 0.48-0.60 mm
-# low at every count: the two surveys' relative bias, see README's Known limits). The dense matching has them all at
-# hand: 6000 cost the command 0.6 s more (10.1 -> 10.7 s). The floor's correspondences are each fitted in a window
-# of their own, and more of them would narrow a std that already stops short of some floors' errors (round 68).
-CORRESPONDENCES = 2000
-DEM_CORRESPONDENCES = 6000
 
 
 def find_correspondences(left_image: np.ndarray, right_image: np.ndarray, max_points: int = 4000,
