@@ -195,8 +195,8 @@ def _add_refine(sub) -> None:
     p.add_argument("--floor-x", type=float, nargs=2, metavar=("XMIN", "XMAX"),
                    help="world x range where the floor is bare (e.g. in front of the toe)")
     p.add_argument("--refine", default="water", help="comma list of water, tilt, right-pose (default water)")
-    p.add_argument("--max-points", type=int, help="correspondences to use, at most (default 6000 against a dry "
-                   "survey or DEM, 2000 otherwise)")
+    p.add_argument("--max-points", type=int, help="correspondences to use, at most (default 6000 from the dense "
+                   "matching against a dry survey or DEM, 2000 otherwise)")
     p.add_argument("--matches", choices=["dense", "sift"], default="dense",
                    help="correspondences from the dense matching, spread over the image (default; SIFT when it "
                         "finds too few), or SIFT features")
