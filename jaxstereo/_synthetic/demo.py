@@ -132,7 +132,7 @@ def _render_stages(out: Path, true_rig, step) -> list:
 def _refine(out: Path, rig: Rig, stage) -> tuple:
     """The water level from the first stage's pair, the floor in front of the toe as control."""
     _, bw, images = stage
-    pl, pr = dense_correspondences(*images, rig, GAUGE, 2000)
+    pl, pr = dense_correspondences(*images, rig, GAUGE)  # as `refine` draws them for the floor: 2000
     refined = refine_rig(rig, pl, pr, GAUGE, refine=("water",), control="floor",
                          floor_region=(-0.75, bw.toe_x_m - 2 * bw.dn50_m))
     level, level_std = refined.parameters["water level (m)"]
